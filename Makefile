@@ -1,0 +1,31 @@
+# triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks.
+# Every target creates (once) and uses the project's own virtual environment in .venv.
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
+
+.PHONY: demo test bench venv clean
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/triswarm sim --scenario paper-hexagon --duration 50 --out runs/demo-$$(date +%Y%m%d-%H%M%S) --strict
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

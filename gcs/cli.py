@@ -1,0 +1,189 @@
+"""triswarm: the operator's command line."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import math
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from triswarm.protocol.airframe import ParameterError
+from triswarm.protocol.design import FormationError
+from triswarm.protocol.graph import GraphError
+from triswarm.protocol.plan import PlanError
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
+                  help="triswarm: formation flight for swarms of tri-rotor drones.")
+console = Console()
+err_console = Console(stderr=True)
+
+USER_ERRORS = (PlanError, ParameterError, FormationError, GraphError, ValueError, FileNotFoundError)
+
+
+class UserError(Exception):
+    """A mistake in what the operator asked for (exit status 2)."""
+
+
+@contextlib.contextmanager
+def user_errors():
+    """Turn a user's mistake into one sentence on stderr and exit status 2, never a traceback."""
+    try:
+        yield
+    except (UserError, *USER_ERRORS) as exc:
+        err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=2) from None
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        console.print(f"triswarm {version('triswarm')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")] = False,
+) -> None:
+    """triswarm: formation flight for swarms of tri-rotor drones."""
+
+
+def _finite(name: str, value: float | None, *, positive: bool = False, non_negative: bool = False) -> None:
+    if value is None:
+        return
+    if not math.isfinite(value):
+        raise UserError(f"--{name} must be a finite number, got {value}")
+    if positive and value <= 0:
+        raise UserError(f"--{name} must be positive, got {value}")
+    if non_negative and value < 0:
+        raise UserError(f"--{name} must not be negative, got {value}")
+
+
+def _default_out(name: str) -> Path:
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / f"sim-{name}-{stamp}"
+
+
+@app.command()
+def sim(
+    scenario: Annotated[str, typer.Option(help="Built-in scenario name or path to a plan TOML file.")] = "paper-hexagon",
+    duration: Annotated[float, typer.Option(help="Simulated time [s].")] = 50.0,
+    out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<scenario>-<time>).")] = None,
+    drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only).")] = None,
+    servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
+    max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default 12000).")] = None,
+    noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
+    mismatch: Annotated[float, typer.Option(help="Plant mass/inertia +PCT %, k_f -PCT/2 % against the controller's model.")] = 0.0,
+    seed: Annotated[int, typer.Option(help="Seed for start positions and noise.")] = 0,
+    physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
+    log_hz: Annotated[float, typer.Option(help="Telemetry rows per second per drone.")] = 50.0,
+    strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the paper's bounds over [25 s, end].")] = False,
+    figures: Annotated[bool, typer.Option(help="Write the PNG figures.")] = True,
+) -> None:
+    """Fly a plan in-process: N simulated tri-rotors and their controllers in one process."""
+    from triswarm.protocol import metrics
+    from triswarm.sitl.simulation import SensorNoise, SimConfig, simulate
+
+    from . import plots, report
+    from .scenarios import load_plan
+
+    with user_errors():
+        _finite("duration", duration, positive=True)
+        _finite("servo-delay-s", servo_delay_s, non_negative=True)
+        _finite("max-rpm", max_rpm, positive=True)
+        _finite("mismatch", mismatch)
+        _finite("physics-hz", physics_hz, positive=True)
+        _finite("log-hz", log_hz, positive=True)
+        if drones is not None and drones < 1:
+            raise UserError(f"--drones must be at least 1, got {drones}")
+        plan = load_plan(scenario, drones)
+        config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
+                           max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed)
+        design = plan.check(horizon_s=duration)
+        out_dir = out or _default_out(plan.name)
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"cannot create output folder {out_dir}: {exc.strerror}") from None
+
+    console.print(f"[bold]{plan.name}[/]: {plan.n_agents} drones, {duration:g} s, c = {design.c:.3g}, "
+                  f"lambda_R = {design.lambda_R:.3g}, topologies {', '.join(design.topology_names)}")
+    with Progress(TextColumn("simulating"), BarColumn(), TextColumn("{task.fields[t]:6.1f} / {task.total:g} s"),
+                  TimeElapsedColumn(), console=console, transient=False) as bar:
+        task = bar.add_task("sim", total=duration, t=0.0)
+        result = simulate(plan, config, progress=lambda t: bar.update(task, completed=t, t=t))
+
+    pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
+    window = min(25.0, 0.5 * duration)
+    perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window)
+    per_drone = []
+    in_window = result.t_s >= window
+    for i in range(plan.n_agents):
+        per_drone.append({
+            "drone": i + 1,
+            "worst_position_error_m": float(pos_err[in_window, i].max()) if in_window.any() else None,
+            "worst_attitude_error_rad": float(att_err[in_window, i].max()) if in_window.any() else None,
+            "thrust_scale_estimate": float(result.thrust_scale[i]),
+            "max_servo_angle_deg": float(math.degrees(abs(result.alpha_rad[:, i]).max())),
+            "max_rotor_speed_rpm": float(result.omega_rad_s[:, i].max() * 60 / (2 * math.pi)),
+        })
+    run = {
+        "duration_s": duration, "physics_hz": physics_hz, "control_hz": plan.controller.rate_hz, "log_hz": log_hz,
+        "servo_delay_s": result.plant_airframe.servo_delay_s, "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),
+        "controller_servo_delay_s": plan.airframe.servo_delay_s,
+        "noise": None if config.noise is None else {"position_m": config.noise.position_m, "attitude_rad": config.noise.attitude_rad},
+        "mismatch_pct": mismatch, "seed": seed, "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
+        "start_position_m": result.start_position_m.tolist(),
+    }
+    report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run, per_drone=per_drone)
+    report.write_telemetry(out_dir / "telemetry.csv", result.t_s, result.position_m, result.euler_rad)
+    fig_paths = plots.make_figures(out_dir, plan, result.t_s, result.position_m, result.euler_rad, perf) if figures else []
+
+    _print_result(plan, perf, per_drone, result, out_dir, fig_paths)
+    if strict and not perf.within_bounds:
+        raise typer.Exit(code=1)
+
+
+def _print_result(plan, perf, per_drone, result, out_dir: Path, fig_paths: list[Path]) -> None:
+    table = Table(title=f"{plan.name}: worst errors over [{perf.window_start_s:g} s, end]")
+    table.add_column("drone", justify="right")
+    table.add_column("position [m]", justify="right")
+    table.add_column("attitude [rad]", justify="right")
+    table.add_column("max servo [deg]", justify="right")
+    table.add_column("max rotor [RPM]", justify="right")
+    shown = per_drone if len(per_drone) <= 20 else per_drone[:10] + per_drone[-5:]
+    for row in shown:
+        p, a = row["worst_position_error_m"], row["worst_attitude_error_rad"]
+        table.add_row(str(row["drone"]), "-" if p is None else f"{p:.4f}", "-" if a is None else f"{a:.4f}",
+                      f"{row['max_servo_angle_deg']:.1f}", f"{row['max_rotor_speed_rpm']:.0f}")
+    console.print(table)
+    verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
+    conv = "never" if perf.convergence_time_s is None else f"{perf.convergence_time_s:.2f} s"
+    console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
+                  f"(worst {perf.worst_position_m:.4f} m, drone {perf.worst_position_drone}; "
+                  f"{perf.worst_attitude_rad:.4f} rad, drone {perf.worst_attitude_drone}); converged at {conv}; "
+                  f"wall time {result.wall_s:.1f} s")
+    if result.diverged_at_s is not None:
+        console.print(f"[red]the simulation stopped at t = {result.diverged_at_s:.2f} s: a drone's state left the valid range[/]")
+    console.print(f"outputs in {out_dir}/: summary.json, telemetry.csv" +
+                  ("".join(f", {p.name}" for p in fig_paths)))
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        err_console.print("triswarm: interrupted")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""Finding and reading plan files: a built-in name (``paper-hexagon``) or a path to a TOML file."""
+
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
+
+
+def builtin_names() -> list[str]:
+    folder = resources.files("triswarm.protocol").joinpath("plans")
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def read_plan_spec(name_or_path: str) -> tuple[dict, str]:
+    """The plan dict and a label for messages. Raises PlanError for a missing or malformed file."""
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        label = str(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise PlanError(f"{label}: no such plan file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise PlanError(f"{label}: cannot read the plan file ({exc.__class__.__name__})") from None
+    else:
+        if name_or_path not in builtin_names():
+            raise PlanError(f"{name_or_path}: not a plan file and not a built-in scenario "
+                            f"(built-in: {', '.join(builtin_names())})")
+        label = name_or_path
+        text = resources.files("triswarm.protocol").joinpath("plans", f"{name_or_path}.toml").read_text(encoding="utf-8")
+    try:
+        return tomllib.loads(text), label
+    except tomllib.TOMLDecodeError as exc:
+        raise PlanError(f"{label}: not valid TOML ({exc})") from None
+
+
+def load_plan(name_or_path: str, drones: int | None = None) -> Plan:
+    spec, label = read_plan_spec(name_or_path)
+    plan = plan_from_dict(spec, label)
+    if drones is not None and drones != plan.n_agents:
+        plan = plan.with_agents(drones)
+    return plan

@@ -1,0 +1,54 @@
+"""The per-agent step of the distributed protocol (72)-(73) in discrete time.
+
+Written over a leading agent axis: a companion calls it with N = 1 (its own row), the in-process
+simulation with all N agents at once. The only thing that differs is how the caller forms the
+neighbour sum  sum_j a_ij xi_j  (a companion from the estimates it received over Zenoh, the
+simulation as ``adjacency @ xi``).
+
+Continuous protocol, with xi_i = xhat_i - h_i:
+    v_i      = c K ( sum_j a_ij (xi_j - xi_i) + g_i (x0 - xi_i) ) + gamma_i          (72)
+    xhat_i'  = A_r xhat_i + B_r v_i + c F (y_i - C_r xhat_i)                            (73)
+The observer is discretised exactly (zero-order hold on v and y over one control period).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import control
+import numpy as np
+
+from .design import Design
+
+
+@dataclass(frozen=True)
+class DiscreteObserver:
+    """xhat[k+1] = Phi xhat[k] + Gamma_v v[k] + Gamma_y y[k] (ZOH of (73) over dt_s)."""
+
+    dt_s: float
+    Phi: np.ndarray
+    Gamma_v: np.ndarray
+    Gamma_y: np.ndarray
+
+    @classmethod
+    def from_design(cls, d: Design, dt_s: float) -> "DiscreteObserver":
+        cF = d.c * d.F
+        sys = control.ss(d.A_r - cF @ d.C_r, np.hstack([d.B_r, cF]), np.eye(12), np.zeros((12, 12)))
+        sysd = control.c2d(sys, dt_s, method="zoh")
+        B = np.asarray(sysd.B)
+        return cls(dt_s, np.asarray(sysd.A), B[:, :6].copy(), B[:, 6:].copy())
+
+    def step(self, xhat: np.ndarray, v: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return xhat @ self.Phi.T + v @ self.Gamma_v.T + y @ self.Gamma_y.T
+
+
+def consensus_error(xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray, pinning: np.ndarray,
+                    x0: np.ndarray) -> np.ndarray:
+    """sum_j a_ij (xi_j - xi_i) + g_i (x0 - xi_i), shape (N, 12)."""
+    return neighbour_sum - (in_degree + pinning)[:, None] * xi + pinning[:, None] * x0
+
+
+def protocol_input(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray,
+                   pinning: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
+    """(72): v (N, 6) for agents with estimates-minus-offsets xi (N, 12)."""
+    return d.c * consensus_error(xi, neighbour_sum, in_degree, pinning, x0) @ d.K.T + gamma

@@ -1,0 +1,194 @@
+"""The per-drone controller between the protocol (72) and the actuators, for N agents at once.
+
+One tick of an agent, at time t with measured output y = (eta, lambda):
+
+    xhat  = controller.observe(y)            # estimate of x_r at t + lead_s   -> publish xi = xhat - h
+    v     = protocol_input(...)              # (72), from own and neighbours' xi at t + lead_s
+    act   = controller.actuate(v)            # rotor speeds and servo angles to send now
+
+What this adds to the paper's law, and why (see README, "Control design"):
+
+* Servo delay. The servos act d = servo_delay_s after their command, the motors at once. The motor
+  command is held back by the same d in software, which turns the mixed delay into a pure input
+  delay of the whole u; an exact predictor (the discrete model over the inputs already committed)
+  then gives the state at t + d, and the protocol and the RFL act on that prediction. For the
+  nominal plant the loop is the delay-free loop shifted by d (a Smith predictor).
+* Observer. (73) is discretised with a zero-order hold on v and a first-order hold on y, updated
+  when y arrives, so the estimate used at tick k has seen y_k. With ``Design.F_aug`` it also
+  estimates an acceleration disturbance on x_r rows 1-6, which the command cancels.
+* Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
+  translational disturbance along the commanded specific thrust (the idea of PX4's hover-thrust
+  estimator) and divided out of u, so a heavier drone or a weaker propeller is flown as designed.
+
+Everything here is arrays in, arrays out; time and measurements come in as arguments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from .design import Design
+from .model import actuator_inverse
+from .rfl import RFL
+
+
+def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """x(T) = Phi x(0) + Gamma u for x' = A x + B u with u held."""
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = A * T
+    M[:n, n:] = B * T
+    E = scipy.linalg.expm(M)
+    return E[:n, :n], E[:n, n:]
+
+
+def _zoh_foh(A: np.ndarray, B_hold: np.ndarray, B_ramp: np.ndarray, T: float):
+    """x(T) = Phi x0 + G_hold u + G0 y0 + G1 y1 for x' = A x + B_hold u + B_ramp y(t), u held and
+    y linear from y0 (t = 0) to y1 (t = T)."""
+    n, m, p = A.shape[0], B_hold.shape[1], B_ramp.shape[1]
+    M = np.zeros((n + m + 2 * p, n + m + 2 * p))
+    M[:n, :n] = A * T
+    M[:n, n:n + m] = B_hold * T
+    M[:n, n + m:n + m + p] = B_ramp * T
+    M[n + m:n + m + p, n + m + p:] = np.eye(p)  # y(s) = y0 + s (y1 - y0), s = t / T
+    E = scipy.linalg.expm(M)
+    Phi = E[:n, :n]
+    G_hold = E[:n, n:n + m]
+    G_level = E[:n, n + m:n + m + p]
+    G_slope = E[:n, n + m + p:]
+    return Phi, G_hold, G_level - G_slope, G_slope
+
+
+@dataclass(frozen=True)
+class Actuation:
+    """Commands to send now, (N, 3) each: rotor speeds [rad/s] and servo angles [rad]."""
+
+    omega_rad_s: np.ndarray
+    alpha_rad: np.ndarray
+
+
+class FormationController:
+    """Observer, delay predictor, thrust adaptation, RFL and actuator inverse for N agents."""
+
+    def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
+                 thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0)) -> None:
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"controller rate must be a positive number of hertz, got {rate_hz!r}")
+        self.design = design
+        self.rfl: RFL = design.rfl
+        self.n = int(n_agents)
+        self.dt_s = 1.0 / float(rate_hz)
+        delay = self.rfl.airframe.servo_delay_s if delay_s is None else float(delay_s)
+        if not (np.isfinite(delay) and delay >= 0):
+            raise ValueError(f"compensated servo delay must be a non-negative number of seconds, got {delay!r}")
+        self.lead_ticks = int(round(delay / self.dt_s))
+        self.lead_s = self.lead_ticks * self.dt_s
+        """Estimates and protocol inputs refer to t + lead_s (the delay, in whole ticks)."""
+        self.adaptation_rate = float(thrust_adaptation_rate_1_s)
+        self.kappa_limits = thrust_scale_limits
+
+        A, B, C, F = design.observer_model()
+        self.n_z = A.shape[0]
+        cF = design.c * F
+        self._Phi, self._Gv, self._Gy0, self._Gy1 = _zoh_foh(A - cF @ C, B, cF, self.dt_s)
+        Phi1, G1 = _zoh(A, B, self.dt_s)
+        self._Phi1, self._G1 = Phi1, G1
+        # Prediction over the pipe: z(t + D dt) = Phi1^D z + sum_j Phi1^(D-1-j) G1 v_j.
+        self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
+        self._pred_G = [np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1 for j in range(self.lead_ticks)]
+        self._half_Phi, self._half_G = _zoh(A, B, 0.5 * self.dt_s)
+        self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
+        self.z: np.ndarray | None = None
+        self.thrust_scale = np.ones(self.n)
+
+    # -- state ---------------------------------------------------------------------------------
+
+    def reset(self, x: np.ndarray) -> None:
+        """Start from the measured state x (N, 12) of (28), e.g. at rest on the ground."""
+        x = np.asarray(x, dtype=float).reshape(self.n, 12)
+        self.z = np.zeros((self.n, self.n_z))
+        self.z[:, :12] = self.rfl.phi_r(x)
+        self._y_prev: np.ndarray | None = None
+        self._v_pipe = [np.zeros((self.n, 6)) for _ in range(self.lead_ticks)]
+        hold = self.rfl.control(x, np.zeros((self.n, 6)))
+        omega, alpha = actuator_inverse(hold)
+        self.initial_actuation = Actuation(omega, alpha)
+        """What the actuators hold at reset (v = 0): where the servos should start."""
+        self._motor_pipe = [omega for _ in range(self.lead_ticks)]
+        self._v_applied = np.zeros((self.n, 6))
+        self.thrust_scale = np.ones(self.n)
+        self._z_pred = self.z.copy()
+
+    @property
+    def disturbance_estimate(self) -> np.ndarray:
+        """Estimated acceleration disturbance (N, 6): earth-frame translation [m/s^2] then Euler
+        accelerations [rad/s^2]; zeros without disturbance estimation."""
+        if self.z is None or self.n_z == 12:
+            return np.zeros((self.n, 6))
+        return self.z[:, 12:18].copy()
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """Current (not predicted) estimate of x_r, (N, 12)."""
+        return self.z[:, :12].copy()
+
+    # -- one tick ------------------------------------------------------------------------------
+
+    def observe(self, y: np.ndarray) -> np.ndarray:
+        """Take y = (eta [rad], lambda [m]) (N, 6) at t; return the estimate of x_r at t + lead_s.
+
+        Rows of y that are not finite are treated as missing: the estimate runs on the model."""
+        if self.z is None:
+            raise RuntimeError("FormationController.observe before reset")
+        y = np.asarray(y, dtype=float)
+        bad = ~np.all(np.isfinite(y), axis=1)
+        if self._y_prev is not None:
+            y_now = np.where(bad[:, None], self._y_prev, y)
+            z_new = self.z @ self._Phi.T + self._v_applied @ self._Gv.T + self._y_prev @ self._Gy0.T + y_now @ self._Gy1.T
+            if bad.any():
+                # missing measurement: propagate the open-loop model instead of the observer
+                z_new[bad] = self.z[bad] @ self._Phi1.T + self._v_applied[bad] @ self._G1.T
+            self.z = z_new
+            self._y_prev = y_now
+        elif not bad.any():
+            self._y_prev = y
+        z = self.z @ self._pred_Phi.T
+        for v, G in zip(self._v_pipe, self._pred_G):
+            z = z + v @ G.T
+        self._z_pred = z
+        return z[:, :12].copy()
+
+    def actuate(self, v: np.ndarray) -> Actuation:
+        """Turn the protocol input v (N, 6) for t + lead_s into the commands to send now."""
+        v = np.asarray(v, dtype=float)
+        if self._Einv is not None:
+            v = v - self._z_pred[:, 12:18] @ self._Einv.T  # cancel the estimated disturbance
+        z_mid = self._z_pred @ self._half_Phi.T + v @ self._half_G.T  # middle of the hold interval
+        u, y_ddot = self.rfl.control_xr(z_mid[:, :12], v)
+        if self._Einv is not None and self.adaptation_rate > 0:
+            a_cmd = y_ddot[:, 3:6].copy()
+            a_cmd[:, 2] += self.rfl.airframe.gravity_m_s2
+            self._adapt_thrust_scale(a_cmd)
+        u = u / self.thrust_scale[:, None]
+        omega, alpha = actuator_inverse(u)
+        if self.lead_ticks:
+            self._v_applied = self._v_pipe.pop(0)
+            self._v_pipe.append(v)
+            self._motor_pipe.append(omega)
+            omega = self._motor_pipe.pop(0)
+        else:
+            self._v_applied = v
+        return Actuation(omega, alpha)
+
+    def _adapt_thrust_scale(self, a_cmd: np.ndarray) -> None:
+        """a_cmd: commanded specific thrust in the earth frame (model units). The translational
+        disturbance along it is w ~ (kappa_true / kappa - 1) a_cmd."""
+        w = self.z[:, 12:15]
+        norm2 = np.einsum("ni,ni->n", a_cmd, a_cmd)
+        ok = norm2 > 1.0  # below ~1 m/s^2 of commanded thrust the ratio says little
+        step = np.zeros(self.n)
+        step[ok] = self.adaptation_rate * self.dt_s * np.einsum("ni,ni->n", w[ok], a_cmd[ok]) / norm2[ok]
+        self.thrust_scale = np.clip(self.thrust_scale * (1.0 + step), *self.kappa_limits)

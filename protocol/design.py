@@ -1,0 +1,233 @@
+"""The design step of Algorithm 1: K (89)-(90), c (91), F (98)-(99), B_tilde/B_bar, gamma (78),
+the feasibility test (76) and the stability conditions (77).
+
+Observer sign convention: F here is the Kalman gain of (98), F = P_bar C_r^T R_bar^-1, and the
+observer is  xhat_dot = A_r xhat + B_r v + c F (y - C_r xhat).  The paper's (73) writes "- c F y~"
+with the opposite sign of F; both describe the same observer, whose error matrix A_r - c F C_r must
+be Hurwitz (the paper's (77) "A_r + c F C_r" with its F = -ours).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import control
+import numpy as np
+
+from .airframe import ParameterError
+from .graph import Schedule
+from .rfl import RFL
+
+ROW_GROUPS = (
+    (slice(0, 3), "velocity rows 1-3"),
+    (slice(3, 6), "Euler-rate rows 4-6"),
+    (slice(6, 9), "attitude rows 7-9"),
+    (slice(9, 12), "position rows 10-12"),
+)
+
+
+class FormationError(ValueError):
+    """A formation that fails the feasibility condition (76) (one sentence)."""
+
+
+@dataclass(frozen=True)
+class DesignWeights:
+    """Weights of the two Riccati equations and the coupling-gain margin.
+
+    Q, R: the LQR cost (96) on x_r and v. Q_bar, R_bar: process and measurement noise covariances of
+    Remark 2 (97). c = coupling_margin / (2 lambda_R) with lambda_R the smallest real part of an
+    eigenvalue of L + G over every topology of the schedule; (91) asks coupling_margin >= 1.
+
+    Q_disturbance (an extension of the paper, zero to switch it off): intensity of a random-walk
+    acceleration disturbance on x_r rows 1-6 (three earth-frame translational accelerations
+    [m^2/s^5], three Euler-angle accelerations [rad^2/s^5]) that the observer estimates and the
+    controller cancels; it absorbs wind and model error (mass, inertia, k_f)."""
+
+    Q: np.ndarray
+    R: np.ndarray
+    Q_bar: np.ndarray
+    R_bar: np.ndarray
+    coupling_margin: float = 1.0
+    Q_disturbance: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+    def __post_init__(self) -> None:
+        qd = np.array(self.Q_disturbance, dtype=float).reshape(-1)
+        if qd.shape != (6,) or not np.all(np.isfinite(qd)) or np.any(qd < 0):
+            raise ParameterError(f"design weight Q_disturbance must be 6 non-negative numbers, got {self.Q_disturbance!r}")
+        if np.any(qd == 0) and np.any(qd > 0):
+            raise ParameterError("design weight Q_disturbance must be all positive (disturbance estimation on) or all zero (off)")
+        qd.setflags(write=False)
+        object.__setattr__(self, "Q_disturbance", qd)
+        for name, n in (("Q", 12), ("R", 6), ("Q_bar", 12), ("R_bar", 6)):
+            M = np.array(getattr(self, name), dtype=float)
+            if M.ndim == 1:
+                M = np.diag(M)
+            if M.shape != (n, n):
+                raise ParameterError(f"design weight {name} must be {n}x{n} or {n} diagonal entries, got shape {M.shape}")
+            if not np.all(np.isfinite(M)):
+                raise ParameterError(f"design weight {name} must be finite numbers")
+            if not np.allclose(M, M.T):
+                raise ParameterError(f"design weight {name} must be symmetric")
+            if np.linalg.eigvalsh(M).min() <= 0:
+                raise ParameterError(f"design weight {name} must be positive definite")
+            M.setflags(write=False)
+            object.__setattr__(self, name, M)
+        if not (np.isfinite(self.coupling_margin) and self.coupling_margin >= 1.0):
+            raise ParameterError(f"coupling margin must be a number >= 1 so that (91) holds, got {self.coupling_margin!r}")
+
+
+@dataclass(frozen=True)
+class Design:
+    """Everything Algorithm 1 computes once for a swarm."""
+
+    rfl: RFL
+    weights: DesignWeights
+    K: np.ndarray
+    P: np.ndarray
+    F: np.ndarray
+    P_bar: np.ndarray
+    c: float
+    lambda_R: float
+    eigenvalues: tuple[np.ndarray, ...]
+    """Eigenvalues of L + G per topology of the schedule."""
+    B_tilde: np.ndarray
+    B_bar: np.ndarray
+    topology_names: tuple[str, ...] = field(default=())
+    F_aug: np.ndarray | None = None
+    """Kalman gain (18 x 6) of the observer augmented with the acceleration disturbance, or None."""
+
+    @property
+    def estimates_disturbance(self) -> bool:
+        return self.F_aug is not None
+
+    def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented
+        with the disturbance state d (x_r rows 1-6 get + d, d_dot = 0)."""
+        if self.F_aug is None:
+            return self.A_r, self.B_r, self.C_r, self.F
+        return (*augmented_model(self.A_r, self.B_r, self.C_r), self.F_aug)
+
+    @property
+    def A_r(self) -> np.ndarray:
+        return self.rfl.A_r
+
+    @property
+    def B_r(self) -> np.ndarray:
+        return self.rfl.B_r
+
+    @property
+    def C_r(self) -> np.ndarray:
+        return self.rfl.C_r
+
+    def closed_loop_matrices(self) -> list[tuple[str, complex, np.ndarray]]:
+        """(77): A_r - c lambda_i B_r K for every eigenvalue of every topology."""
+        out = []
+        for name, lams in zip(self.topology_names, self.eigenvalues):
+            for lam in lams:
+                out.append((name, lam, self.A_r - self.c * lam * (self.B_r @ self.K)))
+        return out
+
+    def observer_matrix(self) -> np.ndarray:
+        """(77): observer error matrix A_r - c F C_r (our sign of F)."""
+        return self.A_r - self.c * self.F @ self.C_r
+
+    def augmented_observer_matrix(self) -> np.ndarray | None:
+        if self.F_aug is None:
+            return None
+        A, _, C, F = self.observer_model()
+        return A - self.c * F @ C
+
+    def stability_margins(self) -> dict:
+        """Largest real part of the eigenvalues of each matrix of (77) (all must be < 0)."""
+        ctrl = max(np.linalg.eigvals(M).real.max() for _, _, M in self.closed_loop_matrices())
+        obs = np.linalg.eigvals(self.observer_matrix()).real.max()
+        out = {"controller_max_real_part": float(ctrl), "observer_max_real_part": float(obs)}
+        aug = self.augmented_observer_matrix()
+        if aug is not None:
+            out["augmented_observer_max_real_part"] = float(np.linalg.eigvals(aug).real.max())
+        return out
+
+    def gamma(self, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
+        """(78): gamma_i = B_tilde (h_dot_i - A_r h_i), for h, h_dot (..., 12)."""
+        return (h_dot - h @ self.A_r.T) @ self.B_tilde.T
+
+
+def left_inverse_pair(B_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """B_tilde (pseudo-inverse, B_tilde B_r = I) and B_bar (B_bar B_r = 0, [B_tilde; B_bar] invertible).
+
+    B_r is zero in rows 6-11 (attitude and position are not driven directly), so B_bar selects
+    those rows, as in Section 5."""
+    B_tilde = np.linalg.pinv(B_r)
+    zero_rows = np.flatnonzero(np.all(B_r == 0.0, axis=1))
+    B_bar = np.eye(B_r.shape[0])[zero_rows]
+    if B_bar.shape[0] != B_r.shape[0] - B_r.shape[1] or np.linalg.matrix_rank(np.vstack([B_tilde, B_bar])) != B_r.shape[0]:
+        raise ParameterError("B_r does not have the structure (full column rank, zero rows 7-12) the design expects")
+    return B_tilde, B_bar
+
+
+def augmented_model(A_r: np.ndarray, B_r: np.ndarray, C_r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x_r extended with a 6-dim acceleration disturbance d on rows 1-6: (A, B, C), 18 states."""
+    E = np.zeros((12, 6))
+    E[0:6, :] = np.eye(6)
+    A = np.block([[A_r, E], [np.zeros((6, 18))]])
+    B = np.vstack([B_r, np.zeros((6, 6))])
+    C = np.hstack([C_r, np.zeros((6, 6))])
+    return A, B, C
+
+
+def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
+    """Algorithm 1's gains for a swarm flying ``schedule``. Refuses a topology without Assumption 1."""
+    schedule.check()
+    A, B, C = rfl.A_r, rfl.B_r, rfl.C_r
+    K, P, _ = control.lqr(A, B, weights.Q, weights.R)           # (89)-(90)
+    F, P_bar, _ = control.lqe(A, np.eye(12), C, weights.Q_bar, weights.R_bar)  # (98)-(99)
+    eigs = tuple(t.eigenvalues() for t in schedule.topologies)
+    lambda_R = float(min(e.real.min() for e in eigs))
+    c = weights.coupling_margin / (2.0 * lambda_R)               # (91) with a margin
+    B_tilde, B_bar = left_inverse_pair(B)
+    F_aug = None
+    if np.all(weights.Q_disturbance > 0):
+        Aa, _, Ca = augmented_model(A, B, C)
+        Qa = np.zeros((18, 18))
+        Qa[:12, :12] = weights.Q_bar
+        Qa[12:, 12:] = np.diag(weights.Q_disturbance)
+        F_aug = np.asarray(control.lqe(Aa, np.eye(18), Ca, Qa, weights.R_bar)[0])
+    d = Design(rfl, weights, np.asarray(K), np.asarray(P), np.asarray(F), np.asarray(P_bar), c, lambda_R, eigs,
+               B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug)
+    margins = d.stability_margins()
+    if any(value >= 0 for value in margins.values()):
+        raise ParameterError(f"design is not stable (77): {margins}")
+    return d
+
+
+def feasibility_residual(A_r: np.ndarray, B_bar: np.ndarray, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
+    """(76): B_bar (A_r h_i - h_dot_i) for h, h_dot (..., 12); zero for a feasible formation."""
+    return (h @ A_r.T - h_dot) @ B_bar.T
+
+
+def check_feasibility(A_r: np.ndarray, B_bar: np.ndarray, formation, times_s, tol: float = 1e-6,
+                      source: str = "formation") -> None:
+    """Evaluate (76) at the given times; raise FormationError naming the agents and rows that fail."""
+    selected = np.flatnonzero(np.any(B_bar != 0, axis=0))  # x_r rows B_bar looks at
+    worst: dict[tuple[int, str], tuple[float, float]] = {}
+    for t in np.atleast_1d(times_s):
+        h, h_dot = formation.offsets(float(t))
+        if not (np.all(np.isfinite(h)) and np.all(np.isfinite(h_dot))):
+            raise FormationError(f"{source}: offsets are not finite numbers at t = {t:g} s")
+        full = h @ A_r.T - h_dot  # (N, 12); B_bar picks rows `selected`
+        for rows, label in ROW_GROUPS:
+            idx = [r for r in range(rows.start, rows.stop) if r in selected]
+            if not idx:
+                continue
+            err = np.abs(full[:, idx]).max(axis=1)
+            for i in np.flatnonzero(err > tol):
+                key = (int(i), label)
+                if key not in worst or err[i] > worst[key][0]:
+                    worst[key] = (float(err[i]), float(t))
+    if worst:
+        parts = []
+        for (i, label), (err, t) in sorted(worst.items()):
+            derivative_of = {"attitude rows 7-9": "Euler-rate rows 4-6", "position rows 10-12": "velocity rows 1-3"}
+            parts.append(f"drone {i + 1} {label} do not change at the rate its {derivative_of.get(label, 'rows')} "
+                         f"give (residual {err:.3g} at t = {t:g} s)")
+        raise FormationError(f"{source} fails the feasibility condition (76): " + "; ".join(parts))

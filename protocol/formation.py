@@ -1,0 +1,244 @@
+"""Formation offsets h_i(t) with exact derivatives.
+
+Every family here describes, per agent, an earth-frame position p(t) and Euler attitude eta(t) with
+their first and second derivatives; the offsets in x_r coordinates are then
+
+    h     = [p_dot, eta_dot, eta, p]
+    h_dot = [p_ddot, eta_ddot, eta_dot, p_dot]
+
+so the velocity rows are the derivatives of the position rows by construction and the feasibility
+condition (76) holds. A formation given as raw 12-vectors is checked by ``design.check_feasibility``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from .airframe import ParameterError
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Per-agent position and attitude with two derivatives, each (N, 3)."""
+
+    p: np.ndarray
+    p_dot: np.ndarray
+    p_ddot: np.ndarray
+    eta: np.ndarray
+    eta_dot: np.ndarray
+    eta_ddot: np.ndarray
+
+    def offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        h = np.concatenate([self.p_dot, self.eta_dot, self.eta, self.p], axis=-1)
+        h_dot = np.concatenate([self.p_ddot, self.eta_ddot, self.eta_dot, self.p_dot], axis=-1)
+        return h, h_dot
+
+
+class Formation:
+    """Base of the formation families: ``kinematics(t)`` gives p, eta and derivatives per agent."""
+
+    n_agents: int
+
+    def kinematics(self, t_s: float) -> Kinematics:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """h (N, 12) and h_dot (N, 12) at time t."""
+        return self.kinematics(t_s).offsets()
+
+
+def _as_agents(name: str, value, n: int) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    if arr.shape == (3,):
+        arr = np.tile(arr, (n, 1))
+    if arr.shape != (n, 3):
+        raise ParameterError(f"formation {name} must be 3 numbers or one triple per agent ({n}), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(f"formation {name} must be finite numbers")
+    return arr
+
+
+@dataclass(frozen=True)
+class ConstantFormation(Formation):
+    """Fixed position [m] and attitude [rad] offsets per agent."""
+
+    position_m: np.ndarray
+    attitude_rad: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.position_m).shape[0]
+        object.__setattr__(self, "position_m", _as_agents("position", self.position_m, n))
+        object.__setattr__(self, "attitude_rad", _as_agents("attitude", self.attitude_rad, n))
+
+    @property
+    def n_agents(self) -> int:
+        return self.position_m.shape[0]
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        z = np.zeros_like(self.position_m)
+        return Kinematics(self.position_m, z, z, self.attitude_rad, z, z)
+
+
+@dataclass(frozen=True)
+class RotatingPolygon(Formation):
+    """The paper's formation generalised to N agents: agent i (from 1) at phase 2 pi (i-1)/N on a
+    circle of ``radius_m`` at ``altitude_m`` turning at ``rate_rad_s``:
+
+        p_i(t) = [R sin(w t + phase_i), R cos(w t + phase_i), altitude]
+
+    with constant attitude offsets ``attitude_rad`` (N, 3). With N = 6, R = 10, altitude 20, w = 1
+    and attitude (-0.5, -0.5, 0.5) * (-1)^i this is the offset h_i of Section 5."""
+
+    n_agents: int
+    radius_m: float
+    altitude_m: float
+    rate_rad_s: float
+    attitude_rad: np.ndarray
+    phase0_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.n_agents, int) and self.n_agents >= 1):
+            raise ParameterError(f"rotating polygon needs at least one agent, got {self.n_agents!r}")
+        for name in ("radius_m", "altitude_m", "rate_rad_s", "phase0_rad"):
+            if not np.isfinite(getattr(self, name)):
+                raise ParameterError(f"rotating polygon {name} must be a finite number")
+        if self.radius_m < 0:
+            raise ParameterError(f"rotating polygon radius_m must not be negative, got {self.radius_m}")
+        object.__setattr__(self, "attitude_rad", _as_agents("attitude", self.attitude_rad, self.n_agents))
+
+    @classmethod
+    def paper(cls, n_agents: int = 6) -> "RotatingPolygon":
+        sign = np.array([(-1.0) ** i for i in range(1, n_agents + 1)])
+        att = np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
+        return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=att)
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
+        ang = w * t_s + self.phase0_rad + 2.0 * np.pi * np.arange(n) / n
+        s, c = np.sin(ang), np.cos(ang)
+        zeros = np.zeros(n)
+        p = np.stack([R * s, R * c, np.full(n, self.altitude_m)], axis=1)
+        p_dot = np.stack([R * w * c, -R * w * s, zeros], axis=1)
+        p_ddot = np.stack([-R * w * w * s, -R * w * w * c, zeros], axis=1)
+        z3 = np.zeros((n, 3))
+        return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
+
+
+@dataclass(frozen=True)
+class KeyframeFormation(Formation):
+    """Shapes at given times joined by a C2 cubic spline (zero velocity at the first and last
+    keyframe), so an operator can reshape a formation. Before the first keyframe and after the last
+    the formation holds. ``positions_m`` and ``attitudes_rad`` are (K, N, 3)."""
+
+    times_s: np.ndarray
+    positions_m: np.ndarray
+    attitudes_rad: np.ndarray
+    _p: CubicSpline = field(init=False, repr=False, compare=False)
+    _eta: CubicSpline = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        t = np.array(self.times_s, dtype=float)
+        p = np.array(self.positions_m, dtype=float)
+        a = np.array(self.attitudes_rad, dtype=float)
+        if t.ndim != 1 or t.size < 2:
+            raise ParameterError("keyframe formation needs at least two keyframe times")
+        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise ParameterError("keyframe times must be finite and strictly increasing")
+        if p.ndim != 3 or p.shape[0] != t.size or p.shape[2] != 3:
+            raise ParameterError(f"keyframe positions must be (keyframes, agents, 3), got {p.shape}")
+        if a.shape != p.shape:
+            raise ParameterError(f"keyframe attitudes must have the shape of the positions {p.shape}, got {a.shape}")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a))):
+            raise ParameterError("keyframe positions and attitudes must be finite numbers")
+        for name, val in (("times_s", t), ("positions_m", p), ("attitudes_rad", a)):
+            object.__setattr__(self, name, val)
+        object.__setattr__(self, "_p", CubicSpline(t, p, axis=0, bc_type="clamped"))
+        object.__setattr__(self, "_eta", CubicSpline(t, a, axis=0, bc_type="clamped"))
+
+    @property
+    def n_agents(self) -> int:
+        return self.positions_m.shape[1]
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        t = float(np.clip(t_s, self.times_s[0], self.times_s[-1]))
+        inside = self.times_s[0] < t_s < self.times_s[-1]
+        def ev(spl, k):
+            if k and not inside:
+                return np.zeros((self.n_agents, 3))
+            return spl(t, k)
+        return Kinematics(ev(self._p, 0), ev(self._p, 1), ev(self._p, 2),
+                          ev(self._eta, 0), ev(self._eta, 1), ev(self._eta, 2))
+
+
+def quintic_blend(tau: float) -> tuple[float, float, float]:
+    """s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 on [0, 1] (rest to rest) and its first two derivatives
+    with respect to tau; 0 before and 1 after."""
+    if tau <= 0.0:
+        return 0.0, 0.0, 0.0
+    if tau >= 1.0:
+        return 1.0, 0.0, 0.0
+    s = tau**3 * (10.0 + tau * (-15.0 + 6.0 * tau))
+    ds = 30.0 * tau**2 * (1.0 - tau) ** 2
+    dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau)
+    return s, ds, dds
+
+
+@dataclass(frozen=True)
+class EntryBlend(Formation):
+    """Reference shaping for formation entry: each agent's offset moves from where it starts
+    (``start`` position and attitude offsets, e.g. resting on the ground) to the target formation by
+    a quintic blend over [t0_s, t0_s + duration_s]; afterwards it equals the target exactly.
+
+        p(t) = start_p + s(t) (p_target(t) - start_p),   eta likewise,
+
+    differentiated with the product rule, so (76) still holds. At t0 the offset equals the start, so
+    a swarm that starts where it is asked to be starts with zero formation error."""
+
+    target: Formation
+    start_position_m: np.ndarray
+    start_attitude_rad: np.ndarray
+    t0_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        n = self.target.n_agents
+        object.__setattr__(self, "start_position_m", _as_agents("start position", self.start_position_m, n))
+        object.__setattr__(self, "start_attitude_rad", _as_agents("start attitude", self.start_attitude_rad, n))
+        if not (np.isfinite(self.duration_s) and self.duration_s > 0 and np.isfinite(self.t0_s)):
+            raise ParameterError(f"entry blend duration must be a positive number of seconds, got {self.duration_s!r}")
+
+    @property
+    def n_agents(self) -> int:
+        return self.target.n_agents
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        k = self.target.kinematics(t_s)
+        T = self.duration_s
+        s, ds, dds = quintic_blend((t_s - self.t0_s) / T)
+        if s == 1.0:
+            return k
+        ds, dds = ds / T, dds / (T * T)
+
+        def blend(x0, x, xd, xdd):
+            d = x - x0
+            return x0 + s * d, ds * d + s * xd, dds * d + 2.0 * ds * xd + s * xdd
+
+        p, pd, pdd = blend(self.start_position_m, k.p, k.p_dot, k.p_ddot)
+        e, ed, edd = blend(self.start_attitude_rad, k.eta, k.eta_dot, k.eta_ddot)
+        return Kinematics(p, pd, pdd, e, ed, edd)
+
+
+@dataclass(frozen=True)
+class RawOffsets:
+    """Offsets given directly as functions of time returning (N, 12) arrays, e.g. from a plan file
+    that writes the paper's printed h_i. Nothing guarantees (76): check it."""
+
+    n_agents: int
+    h_fn: object
+    h_dot_fn: object
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.h_fn(t_s), dtype=float), np.asarray(self.h_dot_fn(t_s), dtype=float)

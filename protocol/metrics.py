@@ -1,0 +1,79 @@
+"""How well a swarm flew its plan: formation errors against x0 + h_i(t), from any telemetry."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .plan import Plan
+
+PAPER_POSITION_BOUND_M = 0.10
+PAPER_ATTITUDE_BOUND_RAD = 0.02
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles to (-pi, pi]."""
+    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+
+
+def formation_errors(plan: Plan, t_s: np.ndarray, position_m: np.ndarray, euler_rad: np.ndarray):
+    """Position error norm [m] (T, N) and absolute attitude errors [rad] (T, N, 3) of every drone
+    against the plan's reference x0(t) + h_i(t) (the formation, not the entry manoeuvre)."""
+    ref = np.stack([plan.reference(float(t))[0] for t in t_s])  # (T, N, 12)
+    pos_err = np.linalg.norm(position_m - ref[:, :, 9:12], axis=2)
+    att_err = np.abs(wrap_angle(euler_rad - ref[:, :, 6:9]))
+    return pos_err, att_err
+
+
+@dataclass(frozen=True)
+class Performance:
+    window_start_s: float
+    worst_position_m: float
+    worst_attitude_rad: float
+    worst_position_drone: int
+    worst_attitude_drone: int
+    convergence_time_s: float | None
+    position_bound_m: float
+    attitude_bound_rad: float
+
+    @property
+    def within_bounds(self) -> bool:
+        return self.worst_position_m <= self.position_bound_m and self.worst_attitude_rad <= self.attitude_bound_rad
+
+    def as_dict(self) -> dict:
+        return {
+            "window_start_s": self.window_start_s,
+            "worst_position_error_m": self.worst_position_m,
+            "worst_position_error_drone": self.worst_position_drone,
+            "worst_attitude_error_rad": self.worst_attitude_rad,
+            "worst_attitude_error_drone": self.worst_attitude_drone,
+            "convergence_time_s": self.convergence_time_s,
+            "position_bound_m": self.position_bound_m,
+            "attitude_bound_rad": self.attitude_bound_rad,
+            "within_bounds": self.within_bounds,
+        }
+
+
+def assess(t_s: np.ndarray, pos_err: np.ndarray, att_err: np.ndarray, window_start_s: float = 25.0,
+           position_bound_m: float = PAPER_POSITION_BOUND_M,
+           attitude_bound_rad: float = PAPER_ATTITUDE_BOUND_RAD) -> Performance:
+    """Worst errors over [window_start_s, end] and the convergence time: the earliest t after which
+    every drone stays within both bounds to the end (None if it never does). An empty window (a
+    run that ended early) counts as infinitely bad."""
+    att_max = att_err.max(axis=2)
+    w = t_s >= window_start_s
+    if w.any():
+        wp, wa = pos_err[w], att_max[w]
+        worst_p, worst_a = float(wp.max()), float(wa.max())
+        drone_p = int(np.unravel_index(np.argmax(wp), wp.shape)[1]) + 1
+        drone_a = int(np.unravel_index(np.argmax(wa), wa.shape)[1]) + 1
+    else:
+        worst_p = worst_a = float("inf")
+        drone_p = drone_a = 0
+    ok = (pos_err.max(axis=1) <= position_bound_m) & (att_max.max(axis=1) <= attitude_bound_rad)
+    conv = None
+    if ok.size and ok[-1]:
+        bad = np.flatnonzero(~ok)
+        conv = float(t_s[bad[-1] + 1]) if bad.size else float(t_s[0])
+    return Performance(window_start_s, worst_p, worst_a, drone_p, drone_a, conv, position_bound_m, attitude_bound_rad)

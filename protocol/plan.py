@@ -1,0 +1,373 @@
+"""A formation plan: who flies, where, over which graphs, with which design weights.
+
+Built from a plain dict (what ``tomllib`` gives for a plan file); reading the file is the caller's
+business. Every mistake a user can make raises ``PlanError`` with one sentence naming the source,
+the field and, where it applies, the drone (numbered from 1).
+
+Schema (all sections but ``formation`` optional; units in the field names):
+
+    name = "paper-hexagon"
+    drones = 6
+    [airframe]        # the controller's nominal airframe; fields of Airframe, default Table 1
+    [leader]          position_m = [x, y, z], attitude_rad = [roll, pitch, yaw]
+    [formation]       type = "rotating-polygon" | "constant" | "keyframes", see _formation()
+    [entry]           climb_m, climb_s, blend_s: take-off and formation-entry shaping
+    [topology]        switch_period_s, and families = [...] or [[topology.graphs]] with
+                      name, pinned = [agents], edges = [[from, to], ...] (agents from 1, 0 = leader)
+    [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
+                      Q_disturbance_diag (6; zeros switch disturbance estimation off)
+    [controller]      rate_hz, thrust_adaptation_rate_1_s
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from . import graph as graph_mod
+from .airframe import Airframe, ParameterError
+from .design import Design, DesignWeights, FormationError, check_feasibility, design
+from .formation import (ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets, RotatingPolygon)
+from .graph import GraphError, Schedule, Topology
+from .rfl import RFL
+
+
+class PlanError(ValueError):
+    """A plan that cannot be flown, with the reason in one sentence."""
+
+
+DEFAULT_Q = (1.0,) * 6 + (1e4,) * 3 + (1e3,) * 3
+DEFAULT_R = (1e-6,) * 6
+DEFAULT_Q_BAR = (1.0,) * 6 + (1e-4,) * 6
+DEFAULT_R_BAR = (0.005**2,) * 3 + (0.02**2,) * 3
+DEFAULT_Q_DISTURBANCE = (100.0,) * 3 + (1000.0,) * 3
+
+
+@dataclass(frozen=True)
+class EntrySettings:
+    """Take-off and formation entry (reference shaping), from wherever each drone starts."""
+
+    climb_m: float = 3.0
+    """Height of the vertical climb, at level attitude, before the formation is blended in."""
+    climb_s: float = 3.0
+    """Duration of that climb (quintic, rest to rest)."""
+    blend_s: float = 12.0
+    """Duration of the quintic blend from the climbed position into the formation."""
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    rate_hz: float = 200.0
+    """Control loop rate."""
+    thrust_adaptation_rate_1_s: float = 3.0
+    """Adaptation rate of the thrust-effectiveness estimate (0 switches it off)."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    n_agents: int
+    airframe: Airframe
+    leader: Formation
+    """The leader's reference x0(t) as a one-agent formation (position and attitude)."""
+    formation: Formation
+    entry: EntrySettings
+    schedule: Schedule
+    weights: DesignWeights
+    controller: ControllerSettings
+    source: str = "plan"
+    spec: dict = field(default_factory=dict, compare=False, repr=False)
+    """The dict the plan was built from (to rebuild it for another number of drones)."""
+
+    @cached_property
+    def rfl(self) -> RFL:
+        return RFL.from_airframe(self.airframe)
+
+    @cached_property
+    def design(self) -> Design:
+        try:
+            return design(self.rfl, self.schedule, self.weights)
+        except (GraphError, ParameterError) as exc:
+            raise PlanError(f"{self.source}: {exc}") from None
+
+    def leader_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """x0(t) and its derivative, (12,) each."""
+        h, h_dot = self.leader.offsets(t_s)
+        return h[0], h_dot[0]
+
+    def reference(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """x0(t) + h_i(t) and derivative, (N, 12): where each drone should be (x_r coordinates)."""
+        x0, x0_dot = self.leader_state(t_s)
+        h, h_dot = self.formation.offsets(t_s)
+        return x0 + h, x0_dot + h_dot
+
+    def check(self, horizon_s: float = 60.0, step_s: float = 0.1) -> Design:
+        """Algorithm 1's checks: (76) for every drone over the horizon, Assumption 1 for every
+        topology, (91) and the Hurwitz conditions (77). Returns the design."""
+        d = self.design
+        times = np.arange(0.0, horizon_s + 1e-9, step_s)
+        try:
+            check_feasibility(d.A_r, d.B_bar, self.formation, times, source=f"{self.source}: formation")
+        except FormationError as exc:
+            raise PlanError(str(exc)) from None
+        return d
+
+    def entry_formation(self, start_position_m: np.ndarray, t0_s: float = 0.0) -> Formation:
+        """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0:
+        climb ``entry.climb_m`` at level attitude, then blend into the plan's formation."""
+        return EntryManeuver(self, np.asarray(start_position_m, dtype=float), t0_s)
+
+    def with_agents(self, n_agents: int) -> "Plan":
+        """The same plan for another number of drones (formation and topology must be defined for
+        any N: rotating polygon and topology families)."""
+        spec = dict(self.spec)
+        spec["drones"] = n_agents
+        for key in ("formation", "topology"):
+            if key in spec:
+                spec[key] = dict(spec[key])
+        if spec.get("formation", {}).get("type") != "rotating-polygon":
+            raise PlanError(f"{self.source}: only a rotating-polygon formation can be resized to {n_agents} drones")
+        if "graphs" in spec.get("topology", {}):
+            raise PlanError(f"{self.source}: explicit topology graphs cannot be resized; use topology families")
+        if isinstance(spec["formation"].get("attitude_rad"), list) and np.ndim(spec["formation"]["attitude_rad"]) == 2:
+            raise PlanError(f"{self.source}: per-drone attitudes cannot be resized to {n_agents} drones")
+        return plan_from_dict(spec, self.source)
+
+
+@dataclass(frozen=True)
+class EntryManeuver(Formation):
+    """Climb from the start positions, then blend into the plan's formation (see EntrySettings).
+    Offsets are relative to the leader's position at t0 (the leader is static during entry in
+    every plan this builds)."""
+
+    plan: Plan
+    start_position_m: np.ndarray
+    t0_s: float
+
+    def __post_init__(self) -> None:
+        p = self.plan
+        x0, _ = p.leader_state(self.t0_s)
+        start_offset = self.start_position_m - x0[9:12]
+        lifted = start_offset + np.array([0.0, 0.0, p.entry.climb_m])
+        level = np.zeros((p.n_agents, 3))
+        object.__setattr__(self, "_climb", EntryBlend(ConstantFormation(lifted, level), start_offset, level,
+                                                      self.t0_s, p.entry.climb_s))
+        object.__setattr__(self, "_blend", EntryBlend(p.formation, lifted, level, self.t0_s + p.entry.climb_s,
+                                                      p.entry.blend_s))
+
+    @property
+    def n_agents(self) -> int:
+        return self.plan.n_agents
+
+    @property
+    def end_s(self) -> float:
+        return self.t0_s + self.plan.entry.climb_s + self.plan.entry.blend_s
+
+    def kinematics(self, t_s: float):
+        if t_s < self.t0_s + self.plan.entry.climb_s:
+            return self._climb.kinematics(t_s)
+        return self._blend.kinematics(t_s)
+
+
+# -- parsing -----------------------------------------------------------------------------------
+
+
+class _Fields:
+    """Reads one section of the plan dict, remembering which keys were used."""
+
+    def __init__(self, source: str, section: str, data) -> None:
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise PlanError(f"{source}: [{section}] must be a table")
+        self.source, self.section, self.data, self.used = source, section, data, set()
+
+    def where(self, key: str) -> str:
+        return f"{self.source}: {self.section + '.' if self.section else ''}{key}"
+
+    def get(self, key: str, default=None):
+        self.used.add(key)
+        return self.data.get(key, default)
+
+    def number(self, key: str, default: float | None = None, *, positive: bool = False,
+               non_negative: bool = False) -> float:
+        value = self.get(key, default)
+        if value is None:
+            raise PlanError(f"{self.where(key)} is required")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise PlanError(f"{self.where(key)} must be a finite number, got {value!r}")
+        if positive and value <= 0:
+            raise PlanError(f"{self.where(key)} must be positive, got {value!r}")
+        if non_negative and value < 0:
+            raise PlanError(f"{self.where(key)} must not be negative, got {value!r}")
+        return float(value)
+
+    def array(self, key: str, shape: tuple[int, ...], default=None, *, per_drone: int | None = None) -> np.ndarray:
+        """A finite array of the given shape; with per_drone = N, a single row is repeated for every drone."""
+        value = self.get(key, default)
+        if value is None:
+            raise PlanError(f"{self.where(key)} is required")
+        try:
+            arr = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            raise PlanError(f"{self.where(key)} must be numbers, got {value!r}") from None
+        if per_drone is not None and arr.shape == shape[1:]:
+            arr = np.tile(arr, (per_drone,) + (1,) * len(shape[1:]))
+        if arr.shape != shape:
+            what = "one entry per drone, each " if per_drone is not None else ""
+            raise PlanError(f"{self.where(key)} must have shape {shape} ({what}{shape[-1]} numbers), got {arr.shape}")
+        bad = np.argwhere(~np.isfinite(arr))
+        if bad.size:
+            at = f" (drone {bad[0][0] + 1})" if per_drone is not None else ""
+            raise PlanError(f"{self.where(key)} must be finite numbers{at}")
+        return arr
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise PlanError(f"{self.where(unknown[0])} is not a known field")
+
+
+def _airframe(f: _Fields) -> Airframe:
+    values = {}
+    for fld in dataclasses.fields(Airframe):
+        if fld.name in f.data:
+            values[fld.name] = f.number(fld.name)
+    f.done()
+    try:
+        return Airframe(**values)
+    except ParameterError as exc:
+        raise PlanError(f"{f.source}: [airframe] {exc}") from None
+
+
+def _attitudes(f: _Fields, n: int) -> np.ndarray:
+    value = f.get("attitude_rad", [0.0, 0.0, 0.0])
+    if value == "paper-alternating":
+        sign = np.array([(-1.0) ** i for i in range(1, n + 1)])
+        return np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
+    return f.array("attitude_rad", (n, 3), [0.0, 0.0, 0.0], per_drone=n)
+
+
+def _formation(f: _Fields, n: int) -> Formation:
+    kind = f.get("type")
+    try:
+        if kind == "rotating-polygon":
+            out = RotatingPolygon(n, f.number("radius_m", non_negative=True), f.number("altitude_m"),
+                                  f.number("rate_rad_s"), _attitudes(f, n), f.number("phase0_rad", 0.0))
+        elif kind == "constant":
+            if "offsets" in f.data:
+                # Raw offsets in the paper's x_r order [lambda_dot, eta_dot, eta, lambda], held
+                # constant: feasible only if the velocity and rate rows are zero (checked by (76)).
+                h = f.array("offsets", (n, 12), per_drone=n)
+                out = RawOffsets(n, lambda t, h=h: h, lambda t, h=h: np.zeros_like(h))
+            else:
+                out = ConstantFormation(f.array("position_m", (n, 3), per_drone=n), _attitudes(f, n))
+        elif kind == "keyframes":
+            frames = f.get("keyframes")
+            if not isinstance(frames, list) or len(frames) < 2:
+                raise PlanError(f"{f.where('keyframes')} must list at least two keyframes")
+            times, pos, att = [], [], []
+            for k, frame in enumerate(frames):
+                kf = _Fields(f.source, f"{f.section}.keyframes[{k}]", frame)
+                times.append(kf.number("t_s"))
+                pos.append(kf.array("position_m", (n, 3), per_drone=n))
+                att.append(_attitudes(kf, n))
+                kf.done()
+            out = KeyframeFormation(np.array(times), np.array(pos), np.array(att))
+        else:
+            raise PlanError(f"{f.where('type')} must be \"rotating-polygon\", \"constant\" or \"keyframes\", got {kind!r}")
+    except ParameterError as exc:
+        raise PlanError(f"{f.source}: [formation] {exc}") from None
+    f.done()
+    return out
+
+
+def _schedule(f: _Fields, n: int) -> Schedule:
+    period = f.number("switch_period_s", 5.0, positive=True)
+    families = f.get("families")
+    graphs = f.get("graphs")
+    topologies: list[Topology] = []
+    try:
+        if graphs is not None:
+            if families is not None:
+                raise PlanError(f"{f.where('graphs')}: give either families or graphs, not both")
+            if not isinstance(graphs, list) or not graphs:
+                raise PlanError(f"{f.where('graphs')} must list at least one graph")
+            for k, g in enumerate(graphs):
+                gf = _Fields(f.source, f"{f.section}.graphs[{k}]", g)
+                name = str(gf.get("name", f"graph-{k + 1}"))
+                edges = gf.get("edges", [])
+                pinned = gf.get("pinned", [])
+                if not (isinstance(edges, list) and all(isinstance(e, list) and len(e) == 2 and
+                                                        all(isinstance(a, int) for a in e) for e in edges)):
+                    raise PlanError(f"{gf.where('edges')} must be a list of [from, to] agent numbers")
+                if not (isinstance(pinned, list) and all(isinstance(a, int) for a in pinned)):
+                    raise PlanError(f"{gf.where('pinned')} must be a list of agent numbers")
+                topologies.append(Topology.from_edges(name, n, [tuple(e) for e in edges], pinned))
+                gf.done()
+        else:
+            families = families if families is not None else list(graph_mod.FAMILIES)
+            if not isinstance(families, list) or not families:
+                raise PlanError(f"{f.where('families')} must list at least one topology family")
+            for name in families:
+                if name not in graph_mod.FAMILIES:
+                    raise PlanError(f"{f.where('families')}: unknown family {name!r} "
+                                    f"(known: {', '.join(graph_mod.FAMILIES)})")
+                topologies.append(graph_mod.FAMILIES[name](n))
+        schedule = Schedule(tuple(topologies), period)
+        schedule.check()
+    except GraphError as exc:
+        raise PlanError(f"{f.source}: [topology] {exc}") from None
+    f.done()
+    return schedule
+
+
+def _weights(f: _Fields) -> DesignWeights:
+    try:
+        w = DesignWeights(
+            Q=f.array("Q_diag", (12,), DEFAULT_Q),
+            R=f.array("R_diag", (6,), DEFAULT_R),
+            Q_bar=f.array("Q_bar_diag", (12,), DEFAULT_Q_BAR),
+            R_bar=f.array("R_bar_diag", (6,), DEFAULT_R_BAR),
+            coupling_margin=f.number("coupling_margin", 1.0),
+            Q_disturbance=f.array("Q_disturbance_diag", (6,), DEFAULT_Q_DISTURBANCE),
+        )
+    except ParameterError as exc:
+        raise PlanError(f"{f.source}: [design] {exc}") from None
+    f.done()
+    return w
+
+
+def plan_from_dict(data: dict, source: str = "plan") -> Plan:
+    """Build and validate a plan. Raises PlanError (one sentence) on anything unusable."""
+    top = _Fields(source, "", data)
+    name = top.get("name", "unnamed")
+    if not isinstance(name, str) or not name:
+        raise PlanError(f"{source}: name must be a non-empty string")
+    n = top.get("drones")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise PlanError(f"{source}: drones must be a whole number of at least 1, got {n!r}")
+    af = _airframe(_Fields(source, "airframe", top.get("airframe")))
+    lf = _Fields(source, "leader", top.get("leader"))
+    leader = ConstantFormation(lf.array("position_m", (1, 3), [0.0, 0.0, 0.0], per_drone=1),
+                               lf.array("attitude_rad", (1, 3), [0.0, 0.0, 0.0], per_drone=1))
+    lf.done()
+    if "formation" not in data:
+        raise PlanError(f"{source}: [formation] is required")
+    formation = _formation(_Fields(source, "formation", top.get("formation")), n)
+    ef = _Fields(source, "entry", top.get("entry"))
+    entry = EntrySettings(ef.number("climb_m", 3.0, non_negative=True), ef.number("climb_s", 3.0, positive=True),
+                          ef.number("blend_s", 12.0, positive=True))
+    ef.done()
+    schedule = _schedule(_Fields(source, "topology", top.get("topology")), n)
+    weights = _weights(_Fields(source, "design", top.get("design")))
+    cf = _Fields(source, "controller", top.get("controller"))
+    ctrl = ControllerSettings(cf.number("rate_hz", 200.0, positive=True),
+                              cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True))
+    cf.done()
+    top.done()
+    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, source, dict(data))

@@ -1,0 +1,1 @@
+"""triswarm.sitl."""

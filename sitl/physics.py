@@ -1,0 +1,294 @@
+"""The tri-rotor plant: rigid-body physics of N drones, no I/O.
+
+Dynamics are the paper's (24)-(25) for body velocity and body rates, with the attitude carried as a
+unit quaternion (scalar first) instead of Euler angles so the plant never meets the pitch = +-90 deg
+singularity of (26), whatever a flight-controller client commands. Position follows (27).
+
+Actuators, per rotor: motor speed omega in [0, max_rotor_speed] applied at once; servo angle alpha
+clamped to +-servo_limit and applied after a pure transport delay (servo_delay_s, rounded to whole
+physics steps). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
+until its thrust lifts more than its weight.
+
+State per drone (13): position_e [m] (0:3), velocity_b [m/s] (3:6), quaternion_b2e (6:10),
+rate_b [rad/s] (10:13), in the paper's frames (earth z up, body z along the untilted thrust).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from triswarm.protocol.airframe import Airframe
+
+POS, VEL_B, QUAT, RATE_B = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
+PLANT_DIM = 13
+_S3 = math.sqrt(3.0) / 2.0
+
+
+def airframe_vector(af: Airframe) -> np.ndarray:
+    """The numbers the kernel needs, in a fixed order."""
+    return np.array([af.mass_kg, af.gravity_m_s2, af.arm_length_m, af.Ixx_kg_m2, af.Iyy_kg_m2, af.Izz_kg_m2,
+                     af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad])
+
+
+@numba.njit(cache=True, fastmath=False)
+def _derivative(s, rho, P, out):
+    m, g, l, Ixx, Iyy, Izz, Iyz, kf, kd = P[0], P[1], P[2], P[3], P[4], P[5], P[6], P[7], P[8]
+    qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+    # Body-to-earth rotation of the (normalised) quaternion.
+    n2 = qw * qw + qx * qx + qy * qy + qz * qz
+    k = 2.0 / n2
+    r00 = 1.0 - k * (qy * qy + qz * qz)
+    r01 = k * (qx * qy - qz * qw)
+    r02 = k * (qx * qz + qy * qw)
+    r10 = k * (qx * qy + qz * qw)
+    r11 = 1.0 - k * (qx * qx + qz * qz)
+    r12 = k * (qy * qz - qx * qw)
+    r20 = k * (qx * qz - qy * qw)
+    r21 = k * (qy * qz + qx * qw)
+    r22 = 1.0 - k * (qx * qx + qy * qy)
+    u, v, w = s[3], s[4], s[5]
+    p, q, r = s[10], s[11], s[12]
+    # (3), (13), (14): body force / k_f and torque.
+    hf0 = -_S3 * rho[1] + _S3 * rho[2]
+    hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
+    hf2 = rho[3] + rho[4] + rho[5]
+    tx = kf * l * (_S3 * rho[4] - _S3 * rho[5]) - kd * hf0
+    ty = kf * l * (-rho[3] + 0.5 * rho[4] + 0.5 * rho[5]) - kd * hf1
+    tz = kf * l * (rho[0] + rho[1] + rho[2]) - kd * hf2
+    # (24): gravity in the body frame is R^T [0, 0, -g].
+    out[3] = -g * r20 - (q * w - r * v) + kf / m * hf0
+    out[4] = -g * r21 - (r * u - p * w) + kf / m * hf1
+    out[5] = -g * r22 - (p * v - q * u) + kf / m * hf2
+    # (25): I w_dot = tau - w x (I w), I = [[Ixx,0,0],[0,Iyy,-Iyz],[0,-Iyz,Izz]].
+    Iwx = Ixx * p
+    Iwy = Iyy * q - Iyz * r
+    Iwz = -Iyz * q + Izz * r
+    bx = tx - (q * Iwz - r * Iwy)
+    by = ty - (r * Iwx - p * Iwz)
+    bz = tz - (p * Iwy - q * Iwx)
+    det = Iyy * Izz - Iyz * Iyz
+    out[10] = bx / Ixx
+    out[11] = (Izz * by + Iyz * bz) / det
+    out[12] = (Iyz * by + Iyy * bz) / det
+    # Quaternion kinematics q_dot = 1/2 q (x) [0, w].
+    out[6] = 0.5 * (-qx * p - qy * q - qz * r)
+    out[7] = 0.5 * (qw * p + qy * r - qz * q)
+    out[8] = 0.5 * (qw * q - qx * r + qz * p)
+    out[9] = 0.5 * (qw * r + qx * q - qy * p)
+    # (27): earth velocity = R v_b.
+    out[0] = r00 * u + r01 * v + r02 * w
+    out[1] = r10 * u + r11 * v + r12 * w
+    out[2] = r20 * u + r21 * v + r22 * w
+
+
+@numba.njit(cache=True)
+def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, P, dt, n_steps, rho_out):
+    """Advance every drone n_steps physics steps of dt with the commands held. Returns hist_pos."""
+    n = state.shape[0]
+    H = alpha_hist.shape[1]
+    wmax, amax = P[9], P[10]
+    m, g, kf = P[0], P[1], P[7]
+    k1 = np.empty(13)
+    k2 = np.empty(13)
+    k3 = np.empty(13)
+    k4 = np.empty(13)
+    tmp = np.empty(13)
+    rho = np.empty(6)
+    for _ in range(n_steps):
+        for i in range(n):
+            # Servo transport delay through a ring buffer; commands are clamped to the servo range.
+            for j in range(3):
+                a = alpha_cmd[i, j]
+                if a > amax:
+                    a = amax
+                elif a < -amax:
+                    a = -amax
+                alpha_hist[i, hist_pos, j] = a
+            lag = (hist_pos - delay_steps) % H
+            for j in range(3):
+                wj = omega_cmd[i, j]
+                if wj > wmax:
+                    wj = wmax
+                elif wj < 0.0:
+                    wj = 0.0
+                w2 = wj * wj
+                a = alpha_hist[i, lag, j]
+                rho[j] = w2 * math.sin(a)
+                rho[j + 3] = w2 * math.cos(a)
+            for j in range(6):
+                rho_out[i, j] = rho[j]
+            s = state[i]
+            if landed[i]:
+                # Resting on the ground: lift off only when thrust exceeds weight.
+                qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+                n2 = qw * qw + qx * qx + qy * qy + qz * qz
+                k = 2.0 / n2
+                r20 = k * (qx * qz - qy * qw)
+                r21 = k * (qy * qz + qx * qw)
+                r22 = 1.0 - k * (qx * qx + qy * qy)
+                hf0 = -_S3 * rho[1] + _S3 * rho[2]
+                hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
+                hf2 = rho[3] + rho[4] + rho[5]
+                lift = kf * (r20 * hf0 + r21 * hf1 + r22 * hf2)
+                if lift <= m * g:
+                    continue
+                landed[i] = False
+            _derivative(s, rho, P, k1)
+            for j in range(13):
+                tmp[j] = s[j] + 0.5 * dt * k1[j]
+            _derivative(tmp, rho, P, k2)
+            for j in range(13):
+                tmp[j] = s[j] + 0.5 * dt * k2[j]
+            _derivative(tmp, rho, P, k3)
+            for j in range(13):
+                tmp[j] = s[j] + dt * k3[j]
+            _derivative(tmp, rho, P, k4)
+            for j in range(13):
+                s[j] += dt / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
+            qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
+            for j in range(6, 10):
+                s[j] /= qn
+            if s[2] < 0.0:
+                # Touch down: stop on the ground, level, keeping the heading.
+                s[2] = 0.0
+                qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+                yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+                s[6] = math.cos(0.5 * yaw)
+                s[7] = 0.0
+                s[8] = 0.0
+                s[9] = math.sin(0.5 * yaw)
+                for j in range(3, 6):
+                    s[j] = 0.0
+                for j in range(10, 13):
+                    s[j] = 0.0
+                landed[i] = True
+        hist_pos = (hist_pos + 1) % H
+    return hist_pos
+
+
+def quaternion_from_euler(eta: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles (..., 3) [rad] to the body-to-earth quaternion (..., 4), scalar first."""
+    h = 0.5 * np.asarray(eta, dtype=float)
+    cf, sf = np.cos(h[..., 0]), np.sin(h[..., 0])
+    ct, st = np.cos(h[..., 1]), np.sin(h[..., 1])
+    cp, sp = np.cos(h[..., 2]), np.sin(h[..., 2])
+    return np.stack([cp * ct * cf + sp * st * sf, cp * ct * sf - sp * st * cf,
+                     cp * st * cf + sp * ct * sf, sp * ct * cf - cp * st * sf], axis=-1)
+
+
+def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Body-to-earth quaternion (..., 4) to ZYX Euler angles (..., 3) [rad]."""
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    roll = np.arctan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+    pitch = np.arcsin(np.clip(2.0 * (qw * qy - qz * qx), -1.0, 1.0))
+    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (qy * qy + qz * qz)
+    R[..., 0, 1] = 2 * (qx * qy - qz * qw)
+    R[..., 0, 2] = 2 * (qx * qz + qy * qw)
+    R[..., 1, 0] = 2 * (qx * qy + qz * qw)
+    R[..., 1, 1] = 1 - 2 * (qx * qx + qz * qz)
+    R[..., 1, 2] = 2 * (qy * qz - qx * qw)
+    R[..., 2, 0] = 2 * (qx * qz - qy * qw)
+    R[..., 2, 1] = 2 * (qy * qz + qx * qw)
+    R[..., 2, 2] = 1 - 2 * (qx * qx + qy * qy)
+    return R
+
+
+@dataclass
+class PlantState:
+    """What the sensors of each drone would see, noise-free, in the paper's frames."""
+
+    position_m: np.ndarray       # (N, 3) earth
+    velocity_e_m_s: np.ndarray   # (N, 3) earth
+    velocity_b_m_s: np.ndarray   # (N, 3) body
+    euler_rad: np.ndarray        # (N, 3) roll, pitch, yaw
+    rate_b_rad_s: np.ndarray     # (N, 3) body rates p, q, r
+    landed: np.ndarray           # (N,) bool
+
+    def paper_state(self) -> np.ndarray:
+        """x of (28): [v_b, omega_b, eta, lambda], (N, 12)."""
+        return np.concatenate([self.velocity_b_m_s, self.rate_b_rad_s, self.euler_rad, self.position_m], axis=1)
+
+
+class Plant:
+    """N tri-rotors integrated with RK4 at a fixed physics step."""
+
+    def __init__(self, airframe: Airframe, n_drones: int, dt_s: float = 1e-3,
+                 servo_delay_s: float | None = None) -> None:
+        if not (dt_s > 0 and math.isfinite(dt_s)):
+            raise ValueError(f"physics step must be a positive number of seconds, got {dt_s!r}")
+        self.airframe = airframe
+        self.dt_s = float(dt_s)
+        self.params = airframe_vector(airframe)
+        delay = airframe.servo_delay_s if servo_delay_s is None else servo_delay_s
+        if not (math.isfinite(delay) and delay >= 0):
+            raise ValueError(f"servo delay must be a non-negative number of seconds, got {delay!r}")
+        self.delay_steps = int(round(delay / self.dt_s))
+        self.n = int(n_drones)
+        self.state = np.zeros((self.n, PLANT_DIM))
+        self.state[:, 6] = 1.0
+        self.landed = np.ones(self.n, dtype=np.bool_)
+        self.omega_cmd = np.zeros((self.n, 3))
+        self.alpha_cmd = np.zeros((self.n, 3))
+        self.alpha_hist = np.zeros((self.n, self.delay_steps + 1, 3))
+        self.hist_pos = 0
+        self.rho = np.zeros((self.n, 6))
+        """rho (29) actually applied during the last physics step (after limits and delay)."""
+        self.time_s = 0.0
+        self._steps = 0
+
+    def reset(self, position_m: np.ndarray, euler_rad: np.ndarray | None = None,
+              velocity_b_m_s: np.ndarray | None = None, rate_b_rad_s: np.ndarray | None = None,
+              servo_rad: np.ndarray | None = None) -> None:
+        """Place the drones; a drone at z <= 0 with no velocity starts landed."""
+        pos = np.array(position_m, dtype=float).reshape(self.n, 3)
+        eta = np.zeros((self.n, 3)) if euler_rad is None else np.array(euler_rad, dtype=float).reshape(self.n, 3)
+        self.state[:, POS] = pos
+        self.state[:, QUAT] = quaternion_from_euler(eta)
+        self.state[:, VEL_B] = 0.0 if velocity_b_m_s is None else velocity_b_m_s
+        self.state[:, RATE_B] = 0.0 if rate_b_rad_s is None else rate_b_rad_s
+        self.landed[:] = (pos[:, 2] <= 0.0) & (np.abs(self.state[:, VEL_B]).sum(axis=1) == 0.0)
+        self.state[self.landed, 2] = 0.0
+        servo = np.zeros((self.n, 3)) if servo_rad is None else np.broadcast_to(servo_rad, (self.n, 3))
+        self.alpha_hist[:] = servo[:, None, :]
+        self.alpha_cmd[:] = servo
+        self.time_s = 0.0
+        self._steps = 0
+
+    def command(self, omega_rad_s: np.ndarray, alpha_rad: np.ndarray) -> None:
+        """Motor speeds [rad/s] and servo angles [rad], (N, 3) each; held until the next command.
+        Non-finite values are replaced by 0 (motor stop / servo centred) rather than integrated."""
+        w = np.asarray(omega_rad_s, dtype=float)
+        a = np.asarray(alpha_rad, dtype=float)
+        self.omega_cmd[:] = np.where(np.isfinite(w), w, 0.0)
+        self.alpha_cmd[:] = np.where(np.isfinite(a), a, 0.0)
+
+    def advance(self, n_steps: int) -> None:
+        self.hist_pos = _advance(self.state, self.landed, self.omega_cmd, self.alpha_cmd, self.alpha_hist,
+                                 self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho)
+        self._steps += int(n_steps)
+        self.time_s = self._steps * self.dt_s
+
+    def observe(self) -> PlantState:
+        s = self.state
+        q = s[:, QUAT]
+        R = rotation_from_quaternion(q)
+        vel_b = s[:, VEL_B].copy()
+        return PlantState(
+            position_m=s[:, POS].copy(),
+            velocity_e_m_s=(R @ vel_b[:, :, None])[:, :, 0],
+            velocity_b_m_s=vel_b,
+            euler_rad=euler_from_quaternion(q),
+            rate_b_rad_s=s[:, RATE_B].copy(),
+            landed=self.landed.copy(),
+        )

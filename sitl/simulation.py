@@ -1,0 +1,201 @@
+"""In-process swarm simulation: N plants and N agents in one process, no I/O.
+
+The agents run exactly what a companion runs (``FormationController`` and ``protocol_input`` of
+``triswarm.protocol``), over a leading agent axis; only the neighbour sum is formed here as
+``adjacency @ xi`` instead of from estimates received over Zenoh.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse
+
+from triswarm.protocol.agent import protocol_input
+from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe
+from triswarm.protocol.controller import FormationController
+from triswarm.protocol.plan import Plan
+
+from .physics import Plant
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Zero-mean Gaussian noise on what the controller measures (standard deviations)."""
+
+    position_m: float = 0.02
+    attitude_rad: float = 0.005
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    duration_s: float = 50.0
+    physics_hz: float = 1000.0
+    log_hz: float = 50.0
+    servo_delay_s: float | None = None
+    """Plant servo delay; None keeps the plan airframe's. The controller keeps the plan's value."""
+    max_rpm: float | None = None
+    """Plant motor limit; None keeps the plan airframe's."""
+    controller_delay_s: float | None = None
+    """Servo delay the controller compensates; None: the plan airframe's (0 switches it off)."""
+    noise: SensorNoise | None = None
+    mismatch_pct: float = 0.0
+    """Plant mass and inertias (1 + pct/100) times, k_f (1 - pct/200) times the controller's."""
+    seed: int = 0
+    start_position_m: np.ndarray | None = None
+    """(N, 3) start positions; default: resting on the ground within 3 m of the origin."""
+
+    def __post_init__(self) -> None:
+        for name in ("duration_s", "physics_hz", "log_hz"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name.replace('_', ' ')} must be a positive number, got {value!r}")
+        if self.servo_delay_s is not None and not (math.isfinite(self.servo_delay_s) and self.servo_delay_s >= 0):
+            raise ValueError(f"servo delay must be a non-negative number of seconds, got {self.servo_delay_s!r}")
+        if self.max_rpm is not None and not (math.isfinite(self.max_rpm) and self.max_rpm > 0):
+            raise ValueError(f"max rpm must be a positive number, got {self.max_rpm!r}")
+        if not (math.isfinite(self.mismatch_pct) and -50.0 < self.mismatch_pct < 100.0):
+            raise ValueError(f"mismatch must be a percentage between -50 and 100, got {self.mismatch_pct!r}")
+
+
+@dataclass
+class SimResult:
+    plan: Plan
+    config: SimConfig
+    plant_airframe: Airframe
+    t_s: np.ndarray            # (T,)
+    position_m: np.ndarray     # (T, N, 3) earth frame, z up
+    euler_rad: np.ndarray      # (T, N, 3) roll, pitch, yaw
+    omega_rad_s: np.ndarray    # (T, N, 3) rotor speeds applied
+    alpha_rad: np.ndarray      # (T, N, 3) servo angles applied
+    start_position_m: np.ndarray
+    wall_s: float = 0.0
+    diverged_at_s: float | None = None
+    thrust_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def default_start_positions(n: int, seed: int = 0, radius_m: float = 3.0) -> np.ndarray:
+    """Drones resting on the ground in a sunflower pattern (even spacing), rotated and jittered by
+    the seed, all within ``radius_m`` of the origin for up to about 30 drones (wider beyond)."""
+    rng = np.random.default_rng(seed)
+    outer = max(radius_m - 0.5, 0.45 * math.sqrt(n))
+    k = np.arange(n) + 0.5
+    r = outer * np.sqrt(k / n)
+    ang = k * math.pi * (3.0 - math.sqrt(5.0)) + rng.uniform(0, 2 * math.pi)
+    pos = np.stack([r * np.cos(ang), r * np.sin(ang), np.zeros(n)], axis=1)
+    pos[:, :2] += rng.uniform(-0.2, 0.2, size=(n, 2))
+    return pos
+
+
+def plant_airframe(plan: Plan, config: SimConfig) -> Airframe:
+    af = plan.airframe
+    if config.mismatch_pct:
+        af = af.with_mismatch(1.0 + config.mismatch_pct / 100.0, 1.0 - config.mismatch_pct / 200.0)
+    changes = {}
+    if config.servo_delay_s is not None:
+        changes["servo_delay_s"] = config.servo_delay_s
+    if config.max_rpm is not None:
+        changes["max_rotor_speed_rad_s"] = config.max_rpm * RPM_TO_RAD_S
+    return af.replace(**changes) if changes else af
+
+
+def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimResult:
+    """Fly the plan from rest on the ground for ``config.duration_s``."""
+    design = plan.check(horizon_s=config.duration_s)
+    n = plan.n_agents
+    rate = plan.controller.rate_hz
+    sub = int(round(config.physics_hz / rate))
+    if sub < 1 or abs(sub * rate - config.physics_hz) > 1e-6 * config.physics_hz:
+        raise ValueError(f"physics rate {config.physics_hz:g} Hz must be a whole multiple of the control rate {rate:g} Hz")
+    dt = 1.0 / rate
+    start = default_start_positions(n, config.seed) if config.start_position_m is None else \
+        np.asarray(config.start_position_m, dtype=float).reshape(n, 3)
+    rng = np.random.default_rng(config.seed + 1)
+
+    af_plant = plant_airframe(plan, config)
+    plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz)
+    ctrl = FormationController(design, n, rate, delay_s=config.controller_delay_s,
+                               thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
+    plant.reset(start)
+    ctrl.reset(plant.observe().paper_state())
+    plant.reset(start, servo_rad=ctrl.initial_actuation.alpha_rad)
+    offsets = plan.entry_formation(start, 0.0)
+    adjacency = {t.name: scipy.sparse.csr_matrix(t.adjacency) for t in plan.schedule.topologies}
+
+    steps = int(round(config.duration_s * rate))
+    log_every = max(1, int(round(rate / config.log_hz)))
+    n_log = steps // log_every + 1
+    t_log = np.zeros(n_log)
+    pos_log = np.zeros((n_log, n, 3))
+    eta_log = np.zeros((n_log, n, 3))
+    omega_log = np.zeros((n_log, n, 3))
+    alpha_log = np.zeros((n_log, n, 3))
+    row = 0
+    diverged = None
+    wall0 = time.perf_counter()
+    lead = ctrl.lead_s
+    for k in range(steps + 1):
+        t = k * dt
+        obs = plant.observe()
+        if k % log_every == 0 and row < n_log:
+            t_log[row] = t
+            pos_log[row] = obs.position_m
+            eta_log[row] = obs.euler_rad
+            w2 = np.hypot(plant.rho[:, 0:3], plant.rho[:, 3:6])
+            omega_log[row] = np.sqrt(w2)
+            alpha_log[row] = np.arctan2(plant.rho[:, 0:3], plant.rho[:, 3:6])
+            row += 1
+            if progress is not None:
+                progress(t)
+        if k == steps:
+            break
+        if not (np.all(np.isfinite(plant.state)) and np.abs(obs.position_m).max() < 1e4):
+            diverged = t
+            break
+        y = np.concatenate([obs.euler_rad, obs.position_m], axis=1)
+        if config.noise is not None:
+            y[:, 0:3] += rng.normal(0.0, config.noise.attitude_rad, (n, 3))
+            y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))
+        # One tick of every agent, as a companion runs it (estimates refer to t + lead).
+        xhat = ctrl.observe(y)
+        t_p = t + lead
+        h, _ = offsets.offsets(t_p)
+        x0, _ = plan.leader_state(t_p)
+        xi = xhat - h
+        topo = plan.schedule.at(t_p)
+        h_mid, h_mid_dot = offsets.offsets(t_p + 0.5 * dt)
+        x0_mid, x0_mid_dot = plan.leader_state(t_p + 0.5 * dt)
+        gamma = design.gamma(h_mid + x0_mid, h_mid_dot + x0_mid_dot)
+        v = protocol_input(design, xi, adjacency[topo.name] @ xi, topo.in_degree, topo.pinning, x0, gamma)
+        act = ctrl.actuate(v)
+        plant.command(act.omega_rad_s, act.alpha_rad)
+        plant.advance(sub)
+    wall = time.perf_counter() - wall0
+    return SimResult(plan, config, af_plant, t_log[:row], pos_log[:row], eta_log[:row], omega_log[:row],
+                     alpha_log[:row], start, wall, diverged, ctrl.thrust_scale.copy())
+
+
+def delay_margin(plan: Plan, config: SimConfig, assess_run: Callable[[SimResult], bool],
+                 lo_s: float | None = None, hi_s: float = 0.05, resolution_s: float = 0.001) -> float:
+    """The largest plant servo delay in [lo_s, hi_s] for which ``assess_run`` still accepts the
+    run, by bisection (the controller keeps compensating the plan's delay). Assumes acceptance is
+    monotone in the delay above the nominal one; returns lo_s - resolution_s if lo_s already fails."""
+    import dataclasses
+
+    lo = plan.airframe.servo_delay_s if lo_s is None else lo_s
+    if not assess_run(simulate(plan, dataclasses.replace(config, servo_delay_s=lo))):
+        return lo - resolution_s
+    hi = hi_s
+    if assess_run(simulate(plan, dataclasses.replace(config, servo_delay_s=hi))):
+        return hi
+    while hi - lo > resolution_s:
+        mid = 0.5 * (lo + hi)
+        if assess_run(simulate(plan, dataclasses.replace(config, servo_delay_s=mid))):
+            lo = mid
+        else:
+            hi = mid
+    return lo

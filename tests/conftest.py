@@ -1,0 +1,49 @@
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from triswarm.protocol.airframe import TABLE_1
+from triswarm.protocol.plan import plan_from_dict
+from triswarm.protocol.rfl import RFL
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
+
+
+@pytest.fixture(scope="session")
+def airframe():
+    return TABLE_1
+
+
+@pytest.fixture(scope="session")
+def rfl():
+    return RFL.from_airframe(TABLE_1)
+
+
+@pytest.fixture(scope="session")
+def paper_spec():
+    return tomllib.loads(PAPER_PLAN_FILE.read_text())
+
+
+@pytest.fixture(scope="session")
+def paper_plan(paper_spec):
+    return plan_from_dict(paper_spec, str(PAPER_PLAN_FILE))
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+def random_states(rng, n, max_pitch=1.2):
+    """Random x of (28) with |theta| < max_pitch."""
+    x = np.empty((n, 12))
+    x[:, 0:3] = rng.uniform(-5, 5, (n, 3))
+    x[:, 3:6] = rng.uniform(-2, 2, (n, 3))
+    x[:, 6] = rng.uniform(-np.pi, np.pi, n)
+    x[:, 7] = rng.uniform(-max_pitch, max_pitch, n)
+    x[:, 8] = rng.uniform(-np.pi, np.pi, n)
+    x[:, 9:12] = rng.uniform(-20, 20, (n, 3))
+    return x

@@ -1,0 +1,89 @@
+"""The operator CLI, run as a real process: outputs of `triswarm sim`, and bad input ends with one
+sentence and exit status 2, never a traceback."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import PAPER_PLAN_FILE
+
+
+def triswarm(*args, cwd=None, timeout=120):
+    return subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout)
+
+
+def test_short_sim_writes_summary_telemetry_and_figures(tmp_path):
+    out = tmp_path / "run"
+    r = triswarm("sim", "--scenario", "paper-hexagon", "--duration", "4", "--out", str(out), "--seed", "3")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["drones"] == 6 and summary["design"]["c"] > 0
+    assert set(summary["design"]["eigenvalues_L_plus_G"]) == {"two-chain", "triangles", "reverse-two-chain"}
+    assert len(summary["design"]["K"]) == 6 and len(summary["design"]["K"][0]) == 12
+    assert len(summary["design"]["F"]) == 12 and len(summary["design"]["F"][0]) == 6
+    with (out / "telemetry.csv").open() as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["t_s", "drone", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad"]
+    drones = {int(r[1]) for r in rows[1:]}
+    assert drones == set(range(1, 7))
+    times = sorted({float(r[0]) for r in rows[1:]})
+    assert times[0] == 0.0 and times[-1] == pytest.approx(4.0)
+    assert (len(rows) - 1) / 6 / 4.0 >= 20  # at least 20 rows per second per drone
+    for name in ("fig7_trajectories_3d.png", "fig9_attitude.png", "fig10_position.png", "formation_error.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def bad(tmp_path, *args):
+    r = triswarm(*args, cwd=tmp_path)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr and "Traceback" not in r.stdout
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, r.stderr
+    return lines[0]
+
+
+def write_plan(tmp_path, replace):
+    text = PAPER_PLAN_FILE.read_text()
+    for old, new in replace:
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "plan.toml"
+    path.write_text(text)
+    return path
+
+
+def test_nan_parameter(tmp_path):
+    assert "--duration must be a finite number" in bad(tmp_path, "sim", "--duration", "nan")
+    assert "--servo-delay-s must not be negative" in bad(tmp_path, "sim", "--servo-delay-s", "-0.01")
+
+
+def test_negative_mass_in_a_scenario_file(tmp_path):
+    path = write_plan(tmp_path, [("[leader]", "[airframe]\nmass_kg = -0.5\n\n[leader]")])
+    line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")
+    assert "plan.toml" in line and "mass_kg must be positive" in line
+
+
+def test_nan_in_a_scenario_file(tmp_path):
+    path = write_plan(tmp_path, [("radius_m = 10.0", "radius_m = nan")])
+    assert "formation.radius_m must be a finite number" in bad(tmp_path, "sim", "--scenario", str(path))
+
+
+def test_infeasible_formation_in_a_scenario_file(tmp_path):
+    offsets = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
+    path = write_plan(tmp_path, [('type = "rotating-polygon"', f'type = "constant"\noffsets = [{offsets}]'),
+                                 ("radius_m = 10.0\n", ""), ("altitude_m = 20.0\n", ""), ("rate_rad_s = 1.0\n", ""),
+                                 ('attitude_rad = "paper-alternating"\n', "")])
+    line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")
+    assert "fails the feasibility condition (76): drone 3 position rows 10-12" in line
+
+
+def test_unknown_scenario_and_unreadable_files(tmp_path):
+    assert "not a plan file and not a built-in scenario" in bad(tmp_path, "sim", "--scenario", "no-such")
+    assert "no such plan file" in bad(tmp_path, "sim", "--scenario", "missing.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("name = \n")
+    assert "not valid TOML" in bad(tmp_path, "sim", "--scenario", str(broken))

@@ -1,0 +1,90 @@
+"""Formation offsets: the derivatives are exact (finite differences), and shapes are what they say."""
+
+import numpy as np
+import pytest
+
+from triswarm.protocol.airframe import ParameterError
+from triswarm.protocol.formation import (ConstantFormation, EntryBlend, KeyframeFormation, RotatingPolygon,
+                                         quintic_blend)
+
+
+def assert_exact_derivative(formation, times, h=1e-5, tol=1e-6):
+    for t in times:
+        hp, _ = formation.offsets(t + h)
+        hm, _ = formation.offsets(t - h)
+        _, hd = formation.offsets(t)
+        assert np.allclose((hp - hm) / (2 * h), hd, atol=tol), t
+
+
+def keyframes():
+    shapes = np.array([
+        [[0, 0, 10], [4, 0, 10], [8, 0, 10]],
+        [[0, 0, 10], [2, 3, 12], [4, 0, 14]],
+        [[-5, 0, 5], [0, 5, 5], [5, 0, 5]],
+    ], dtype=float)
+    att = np.zeros_like(shapes)
+    att[1, :, 2] = 0.8
+    return KeyframeFormation(np.array([2.0, 8.0, 15.0]), shapes, att)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: RotatingPolygon.paper(6),
+    lambda: RotatingPolygon(7, 4.0, 12.0, -0.6, np.tile([0.1, -0.2, 0.3], (7, 1)), 0.4),
+    keyframes,
+    lambda: EntryBlend(RotatingPolygon.paper(6), np.tile([1.0, -2.0, 0.0], (6, 1)), np.zeros(3), 1.0, 9.0),
+    lambda: ConstantFormation(np.ones((4, 3)), np.zeros((4, 3))),
+])
+def test_offsets_have_exact_derivatives(make):
+    assert_exact_derivative(make(), np.linspace(0.3, 19.7, 60))
+
+
+def test_rotating_polygon_geometry():
+    f = RotatingPolygon(5, 3.0, 7.0, 0.5, np.zeros((5, 3)))
+    for t in (0.0, 2.0):
+        p = f.kinematics(t).p
+        assert np.allclose(np.linalg.norm(p[:, :2], axis=1), 3.0)
+        assert np.allclose(p[:, 2], 7.0)
+        ang = np.arctan2(p[:, 0], p[:, 1])  # phase measured as in [R sin, R cos]
+        assert np.allclose(np.mod(np.diff(ang), 2 * np.pi), 2 * np.pi / 5)
+        assert ang[0] == pytest.approx(0.5 * t)
+
+
+def test_keyframes_pass_through_the_shapes_and_hold_outside():
+    f = keyframes()
+    for k, t in enumerate(f.times_s):
+        kin = f.kinematics(t)
+        assert np.allclose(kin.p, f.positions_m[k]) and np.allclose(kin.eta, f.attitudes_rad[k])
+    for t in (0.0, 1.0, 20.0):
+        kin = f.kinematics(t)
+        assert np.allclose(kin.p_dot, 0) and np.allclose(kin.p_ddot, 0)
+    assert np.allclose(f.kinematics(0.0).p, f.positions_m[0])
+    assert np.allclose(f.kinematics(30.0).p, f.positions_m[-1])
+
+
+def test_entry_blend_starts_at_the_start_and_ends_on_the_target():
+    target = RotatingPolygon.paper(6)
+    start = np.random.default_rng(0).uniform(-3, 3, (6, 3))
+    f = EntryBlend(target, start, np.zeros(3), 2.0, 10.0)
+    h0, hd0 = f.offsets(2.0)
+    assert np.allclose(h0[:, 9:12], start) and np.allclose(h0[:, 6:9], 0) and np.allclose(hd0, 0)
+    for t in (12.0, 20.0):
+        assert np.allclose(f.offsets(t)[0], target.offsets(t)[0])
+        assert np.allclose(f.offsets(t)[1], target.offsets(t)[1])
+
+
+def test_quintic_blend_is_rest_to_rest():
+    assert quintic_blend(0.0) == (0.0, 0.0, 0.0) and quintic_blend(1.0) == (1.0, 0.0, 0.0)
+    s, ds, dds = quintic_blend(0.5)
+    assert s == pytest.approx(0.5) and ds == pytest.approx(1.875) and dds == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("kwargs,msg", [
+    (dict(radius_m=float("nan")), "radius_m must be a finite"),
+    (dict(radius_m=-1.0), "must not be negative"),
+    (dict(attitude_rad=np.zeros((2, 3))), "one triple per agent"),
+])
+def test_bad_formation_parameters_are_refused(kwargs, msg):
+    base = dict(n_agents=3, radius_m=1.0, altitude_m=5.0, rate_rad_s=1.0, attitude_rad=np.zeros((3, 3)))
+    base.update(kwargs)
+    with pytest.raises(ParameterError, match=msg):
+        RotatingPolygon(**base)

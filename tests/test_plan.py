@@ -1,0 +1,93 @@
+"""Plan files: the paper scenario, and every kind of bad input refused with one sentence."""
+
+import copy
+
+import numpy as np
+import pytest
+
+from triswarm.gcs.scenarios import builtin_names, load_plan
+from triswarm.protocol.plan import PlanError, plan_from_dict
+
+
+def test_paper_plan_is_the_papers_case_study(paper_plan):
+    assert paper_plan.n_agents == 6
+    x0, x0_dot = paper_plan.leader_state(0.0)
+    assert np.allclose(x0[9:12], [5, -5, 0]) and np.allclose(x0[:9], 0) and np.allclose(x0_dot, 0)
+    ref, _ = paper_plan.reference(0.0)
+    assert np.allclose(ref[:, 11], 20.0)
+    assert np.allclose(np.linalg.norm(ref[:, 9:11] - [5, -5], axis=1), 10.0)
+    assert np.allclose(ref[:, 6:9], [[-0.5 * (-1) ** i, -0.5 * (-1) ** i, 0.5 * (-1) ** i] for i in range(1, 7)])
+    assert paper_plan.schedule.period_s == 5.0
+    paper_plan.check(horizon_s=60)
+
+
+def test_builtin_scenario_is_the_example_file(paper_spec):
+    assert "paper-hexagon" in builtin_names()
+    assert load_plan("paper-hexagon").spec == paper_spec
+
+
+def test_plan_resizes_for_another_number_of_drones(paper_plan):
+    p = paper_plan.with_agents(12)
+    assert p.n_agents == 12 and p.schedule.n_agents == 12
+    p.check(horizon_s=10)
+
+
+def spec_with(paper_spec, path, value):
+    spec = copy.deepcopy(paper_spec)
+    node = spec
+    for key in path[:-1]:
+        node = node.setdefault(key, {})
+    node[path[-1]] = value
+    return spec
+
+
+@pytest.mark.parametrize("path,value,message", [
+    (("airframe", "mass_kg"), -0.5, r"\[airframe\] airframe parameter mass_kg must be positive, got -0.5"),
+    (("airframe", "mass_kg"), float("nan"), r"airframe.mass_kg must be a finite number, got nan"),
+    (("formation", "radius_m"), float("nan"), r"formation.radius_m must be a finite number"),
+    (("formation", "altitude_m"), "high", r"formation.altitude_m must be a finite number, got 'high'"),
+    (("formation", "type"), "spiral", r"formation.type must be"),
+    (("formation", "colour"), "red", r"formation.colour is not a known field"),
+    (("drones",), 0, r"drones must be a whole number of at least 1"),
+    (("leader", "position_m"), [1.0, 2.0], r"leader.position_m must have shape"),
+    (("design", "R_diag"), [1e-6, 1e-6, 1e-6, 1e-6, 1e-6, -1.0], r"design weight R must be positive definite"),
+    (("design", "coupling_margin"), 0.5, r"coupling margin must be a number >= 1 so that \(91\) holds"),
+    (("topology", "families"), ["ring"], r"unknown family 'ring'"),
+    (("topology", "switch_period_s"), 0.0, r"topology.switch_period_s must be positive"),
+    (("entry", "blend_s"), -1.0, r"entry.blend_s must be positive"),
+    (("controller", "rate_hz"), float("inf"), r"controller.rate_hz must be a finite number"),
+])
+def test_bad_plan_fields_are_refused_with_one_sentence(paper_spec, path, value, message):
+    with pytest.raises(PlanError, match=message) as exc:
+        plan_from_dict(spec_with(paper_spec, path, value), "my.toml")
+    text = str(exc.value)
+    assert text.startswith("my.toml: ") and "\n" not in text
+
+
+def test_graph_without_path_from_leader_is_refused(paper_spec):
+    spec = copy.deepcopy(paper_spec)
+    spec["topology"] = {"switch_period_s": 5.0, "graphs": [
+        {"name": "broken", "pinned": [1], "edges": [[1, 2], [2, 3], [4, 5], [5, 6]]}]}
+    with pytest.raises(PlanError, match=r"my.toml: \[topology\] topology broken violates Assumption 1: no directed path from the leader to agents 4, 5, 6"):
+        plan_from_dict(spec, "my.toml")
+
+
+def test_infeasible_formation_is_refused_naming_the_drone(paper_spec):
+    spec = copy.deepcopy(paper_spec)
+    offsets = [[0.0] * 9 + [float(i), 0.0, 10.0] for i in range(6)]
+    offsets[3][0] = 1.5  # drone 4 asks for 1.5 m/s while its position offset stays constant
+    spec["formation"] = {"type": "constant", "offsets": offsets}
+    plan = plan_from_dict(spec, "my.toml")
+    with pytest.raises(PlanError, match=r"my.toml: formation fails the feasibility condition \(76\): drone 4 position rows 10-12"):
+        plan.check(horizon_s=5)
+
+
+def test_keyframe_plan(paper_spec):
+    spec = copy.deepcopy(paper_spec)
+    spec["formation"] = {"type": "keyframes", "keyframes": [
+        {"t_s": 0.0, "position_m": [[i * 2.0, 0.0, 10.0] for i in range(6)]},
+        {"t_s": 20.0, "position_m": [[0.0, i * 2.0, 12.0] for i in range(6)], "attitude_rad": [0.0, 0.0, 0.5]},
+    ]}
+    plan = plan_from_dict(spec, "k.toml")
+    plan.check(horizon_s=30)
+    assert np.allclose(plan.formation.offsets(25.0)[0][:, 9:12], [[0.0, i * 2.0, 12.0] for i in range(6)])

@@ -1,0 +1,75 @@
+"""Robust feedback linearization (49)-(56): exactness by finite differences, and the linear model it
+produces equals the Jacobian linearization at hover."""
+
+import numpy as np
+import pytest
+
+from triswarm.protocol import model
+from triswarm.protocol.design import left_inverse_pair
+from triswarm.protocol.rfl import decoupling_matrix
+
+from .conftest import random_states
+
+
+def jacobian(f, x0, h=1e-6):
+    return np.stack([(f(x0 + h * e) - f(x0 - h * e)) / (2 * h) for e in np.eye(x0.size)], axis=-1)
+
+
+def test_rfl_is_exact_along_the_true_dynamics(rfl, airframe, rng):
+    """d/dt phi_r(x) along f(x, u(x, v)) = A_r phi_r(x) + B_r v at random states with |theta| < 1.2."""
+    x = random_states(rng, 40, max_pitch=1.2)
+    v = rng.normal(0, 2e4, (40, 6))
+    u = rfl.control(x, v)
+    xdot = model.state_derivative(x, u, airframe)
+    h = 1e-6
+    lhs = (rfl.phi_r(x + h * xdot) - rfl.phi_r(x - h * xdot)) / (2 * h)
+    rhs = rfl.phi_r(x) @ rfl.A_r.T + v @ rfl.B_r.T
+    scale = np.abs(rhs).max(axis=1, keepdims=True) + 1.0
+    assert np.abs(lhs - rhs).max() / scale.max() < 1e-6
+    assert np.all(np.abs(lhs - rhs) <= 1e-6 * scale)
+
+
+def test_linear_model_is_the_jacobian_at_hover(rfl, airframe):
+    u0 = model.hover_input(airframe)
+    A = jacobian(lambda x: model.state_derivative(x, u0, airframe), np.zeros(12))
+    B = jacobian(lambda u: model.state_derivative(np.zeros(12), u, airframe), u0, h=1.0)
+    # at the origin x_r = x to first order, so the Jacobian in x is the Jacobian in x_r
+    assert np.allclose(rfl.A_r, A, atol=1e-8)
+    assert np.allclose(rfl.B_r, B, rtol=1e-9, atol=1e-12)
+
+
+def test_structure_matches_errata(rfl, airframe):
+    g = airframe.gravity_m_s2
+    A = np.zeros((12, 12))
+    A[0, 7], A[1, 6] = g, -g
+    A[6:9, 3:6] = np.eye(3)
+    A[9:12, 0:3] = np.eye(3)
+    assert np.allclose(rfl.A_r, A, atol=1e-12)
+    assert np.all(rfl.B_r[6:] == 0)
+    assert np.allclose(rfl.C_r, np.hstack([np.zeros((6, 6)), np.eye(6)]))
+    # the errata's row 1 of pinv(B_r) (the printed B_tilde has another input scaling)
+    B_tilde, B_bar = left_inverse_pair(rfl.B_r)
+    assert B_tilde[0, :6] == pytest.approx([0, 16920.5, 537.75, 0, -22.8, 125.06], abs=0.1)
+    assert np.allclose(B_tilde @ rfl.B_r, np.eye(6), atol=1e-9)
+    assert np.allclose(B_bar @ rfl.B_r, 0)
+
+
+def test_law_at_hover_is_the_trim_and_beta_is_identity(rfl, airframe):
+    x = np.zeros(12)
+    assert np.allclose(rfl.alpha(x), model.hover_input(airframe), rtol=1e-12)
+    assert np.allclose(rfl.beta(x), np.eye(6), atol=1e-12)
+
+
+def test_decoupling_matrix_is_invertible_below_90_degrees_pitch(airframe, rng):
+    x = random_states(rng, 500, max_pitch=np.pi / 2 - 1e-3)
+    det = np.linalg.det(decoupling_matrix(x, airframe))
+    assert np.all(np.abs(det) > 0) and np.all(np.isfinite(det))
+
+
+def test_phi_r_inverse_and_solve_free_law(rfl, rng):
+    x = random_states(rng, 50, max_pitch=1.2)
+    assert np.allclose(rfl.phi_r_inverse(rfl.phi_r(x)), x, atol=1e-10)
+    v = rng.normal(0, 1e4, (50, 6))
+    u_xr, y_ddot = rfl.control_xr(rfl.phi_r(x), v)
+    assert np.allclose(u_xr, rfl.control(x, v), rtol=1e-10, atol=1e-6)
+    assert np.allclose(y_ddot, rfl.phi_r(x) @ rfl.L.T + v @ rfl.M0.T)
