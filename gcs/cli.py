@@ -85,7 +85,9 @@ def sim(
     seed: Annotated[int, typer.Option(help="Seed for start positions and noise.")] = 0,
     physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
     log_hz: Annotated[float, typer.Option(help="Telemetry rows per second per drone.")] = 50.0,
-    strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the paper's bounds over [25 s, end].")] = False,
+    position_bound_m: Annotated[float, typer.Option(help="Position bound for the verdict [m].")] = 0.10,
+    attitude_bound_rad: Annotated[float, typer.Option(help="Attitude bound for the verdict [rad].")] = 0.02,
+    strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the bounds over [25 s, end].")] = False,
     figures: Annotated[bool, typer.Option(help="Write the PNG figures.")] = True,
 ) -> None:
     """Fly a plan in-process: N simulated tri-rotors and their controllers in one process."""
@@ -102,6 +104,8 @@ def sim(
         _finite("mismatch", mismatch)
         _finite("physics-hz", physics_hz, positive=True)
         _finite("log-hz", log_hz, positive=True)
+        _finite("position-bound-m", position_bound_m, positive=True)
+        _finite("attitude-bound-rad", attitude_bound_rad, positive=True)
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(scenario, drones)
@@ -123,7 +127,8 @@ def sim(
 
     pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
     window = min(25.0, 0.5 * duration)
-    perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window)
+    perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window, position_bound_m=position_bound_m,
+                          attitude_bound_rad=attitude_bound_rad)
     per_drone = []
     in_window = result.t_s >= window
     for i in range(plan.n_agents):
@@ -152,24 +157,31 @@ def sim(
         raise typer.Exit(code=1)
 
 
+def _num(x: float | None) -> str:
+    """A short, honest rendering: tiny errors in scientific notation rather than 0.0000."""
+    if x is None or not math.isfinite(x):
+        return "-"
+    return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"
+
+
 def _print_result(plan, perf, per_drone, result, out_dir: Path, fig_paths: list[Path]) -> None:
     table = Table(title=f"{plan.name}: worst errors over [{perf.window_start_s:g} s, end]")
     table.add_column("drone", justify="right")
-    table.add_column("position [m]", justify="right")
-    table.add_column("attitude [rad]", justify="right")
-    table.add_column("max servo [deg]", justify="right")
-    table.add_column("max rotor [RPM]", justify="right")
+    table.add_column("pos [m]", justify="right")
+    table.add_column("att [rad]", justify="right")
+    table.add_column("servo max [deg]", justify="right")
+    table.add_column("rotor max [RPM]", justify="right")
     shown = per_drone if len(per_drone) <= 20 else per_drone[:10] + per_drone[-5:]
     for row in shown:
-        p, a = row["worst_position_error_m"], row["worst_attitude_error_rad"]
-        table.add_row(str(row["drone"]), "-" if p is None else f"{p:.4f}", "-" if a is None else f"{a:.4f}",
+        table.add_row(str(row["drone"]), _num(row["worst_position_error_m"]), _num(row["worst_attitude_error_rad"]),
                       f"{row['max_servo_angle_deg']:.1f}", f"{row['max_rotor_speed_rpm']:.0f}")
     console.print(table)
     verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
-    conv = "never" if perf.convergence_time_s is None else f"{perf.convergence_time_s:.2f} s"
+    conv = ("did not settle within them" if perf.convergence_time_s is None
+            else f"within them from {perf.convergence_time_s:.2f} s")
     console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
-                  f"(worst {perf.worst_position_m:.4f} m, drone {perf.worst_position_drone}; "
-                  f"{perf.worst_attitude_rad:.4f} rad, drone {perf.worst_attitude_drone}); converged at {conv}; "
+                  f"(worst {_num(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
+                  f"{_num(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone}); {conv}; "
                   f"wall time {result.wall_s:.1f} s")
     if result.diverged_at_s is not None:
         console.print(f"[red]the simulation stopped at t = {result.diverged_at_s:.2f} s: a drone's state left the valid range[/]")
