@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet --no-deps 'MAVProxy==1.8.75'
 	@touch $(STAMP)
 
 venv: $(STAMP)
@@ -26,6 +27,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
+	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

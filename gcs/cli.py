@@ -189,6 +189,73 @@ def _print_result(plan, perf, per_drone, result, out_dir: Path, fig_paths: list[
                   ("".join(f", {p.name}" for p in fig_paths)))
 
 
+sitl_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
+                       help="Simulated tri-rotor flight controllers that speak MAVLink.")
+app.add_typer(sitl_app, name="sitl")
+
+
+@sitl_app.command("up")
+def sitl_up(
+    n: Annotated[int, typer.Option("-n", "--vehicles", help="Number of vehicles (sysid 1..N).")] = 1,
+    manifest: Annotated[Path, typer.Option(help="Where to write the manifest JSON.")] = Path("sitl-manifest.json"),
+    home: Annotated[str, typer.Option(help="Swarm home LAT,LON,ALT_M (the local origin, on the ground).")] = "53.4668,-2.2339,60",
+    speedup: Annotated[float, typer.Option(help="Run physics and streams K times faster than real time.")] = 1.0,
+    rate_hz: Annotated[float, typer.Option(help="ATTITUDE and LOCAL_POSITION_NED rate on companion links [Hz].")] = 100.0,
+    physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
+    base_port: Annotated[int, typer.Option(help="UDP port of vehicle 1's companion link; vehicle i uses base+2(i-1) "
+                                                "(companion) and base+2(i-1)+1 (gcs). 0: any free ports.")] = 14600,
+    bind: Annotated[str, typer.Option(help="Address to bind the UDP links to.")] = "127.0.0.1",
+    spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
+    stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
+) -> None:
+    """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
+    import asyncio
+
+    from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
+
+    with user_errors():
+        _finite("speedup", speedup, positive=True)
+        _finite("rate-hz", rate_hz, non_negative=True)
+        _finite("physics-hz", physics_hz, positive=True)
+        _finite("spacing-m", spacing_m, positive=True)
+        _finite("duration", duration, positive=True)
+        if not 0 <= base_port <= 65535 - 2 * n:
+            raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
+        opts = SitlOptions(n=n, manifest=manifest, home=parse_home(home), speedup=speedup, rate_hz=rate_hz,
+                           physics_hz=physics_hz, base_port=base_port, bind=bind, spacing_m=spacing_m, stats=stats,
+                           duration_s=duration)
+
+        def ready(m: dict) -> None:
+            if quiet:
+                return
+            table = Table(title=f"{n} simulated tri-rotors, home {opts.home[0]:.6f}, {opts.home[1]:.6f}, "
+                                f"{opts.home[2]:g} m; manifest {manifest}")
+            table.add_column("sysid", justify="right")
+            table.add_column("start N,E [m]", justify="right")
+            table.add_column("companion link")
+            table.add_column("gcs link")
+            for v in m["vehicles"]:
+                ned = v["start_ned_m"]
+                table.add_row(str(v["sysid"]), f"{ned[0]:.1f}, {ned[1]:.1f}", v["links"]["companion"]["pymavlink"],
+                              v["links"]["gcs"]["pymavlink"])
+            console.print(table)
+            console.print("pymavlink: mavutil.mavlink_connection(<link>); MAVSDK: the same with udpout://. "
+                          "Ctrl-C stops.", soft_wrap=True)
+
+        try:
+            result = asyncio.run(run_sitl(opts, on_ready=ready))
+        except OSError as exc:
+            raise UserError(str(exc)) from None
+    if not quiet:
+        rows = [(v["sysid"], v["drops"], v["counters"]) for v in result["vehicles"]]
+        dropped = [f"{sid}: {drops}" for sid, drops, _ in rows if drops]
+        console.print(f"stopped after {result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
+                      f"(speedup {result['speedup_achieved'] or 0:.2f}); dropped frames per vehicle: "
+                      f"{', '.join(dropped) if dropped else 'none'}", soft_wrap=True)
+
+
 def main() -> None:
     try:
         app()

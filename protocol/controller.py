@@ -102,25 +102,39 @@ class FormationController:
         self._half_Phi, self._half_G = _zoh(A, B, 0.5 * self.dt_s)
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self.z: np.ndarray | None = None
+        self._y_prev: np.ndarray | None = None
         self.thrust_scale = np.ones(self.n)
 
     # -- state ---------------------------------------------------------------------------------
 
-    def reset(self, x: np.ndarray) -> None:
-        """Start from the measured state x (N, 12) of (28), e.g. at rest on the ground."""
-        x = np.asarray(x, dtype=float).reshape(self.n, 12)
-        self.z = np.zeros((self.n, self.n_z))
-        self.z[:, :12] = self.rfl.phi_r(x)
-        self._y_prev: np.ndarray | None = None
-        self._v_pipe = [np.zeros((self.n, 6)) for _ in range(self.lead_ticks)]
-        hold = self.rfl.control(x, np.zeros((self.n, 6)))
+    def reset(self, x: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Start from the measured state x of (28), e.g. at rest on the ground: (N, 12), or
+        (len(rows), 12) to restart only those agents (the others keep their state)."""
+        if rows is None or self.z is None:
+            rows = np.arange(self.n)
+            if self.z is None:
+                self.z = np.zeros((self.n, self.n_z))
+                self._y_prev = None
+                self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
+                self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
+                self._v_applied = np.zeros((self.n, 6))
+                self._z_pred = np.zeros((self.n, self.n_z))
+                self.initial_actuation = Actuation(np.zeros((self.n, 3)), np.zeros((self.n, 3)))
+        rows = np.asarray(rows, dtype=int)
+        x = np.asarray(x, dtype=float).reshape(rows.size, 12)
+        self.z[rows] = 0.0
+        self.z[rows, :12] = self.rfl.phi_r(x)
+        self._z_pred[rows] = self.z[rows]
+        if self._y_prev is not None:
+            self._y_prev[rows] = x[:, 6:12]
+        hold = self.rfl.control(x, np.zeros((rows.size, 6)))
         omega, alpha = actuator_inverse(hold)
-        self.initial_actuation = Actuation(omega, alpha)
-        """What the actuators hold at reset (v = 0): where the servos should start."""
-        self._motor_pipe = [omega for _ in range(self.lead_ticks)]
-        self._v_applied = np.zeros((self.n, 6))
-        self.thrust_scale = np.ones(self.n)
-        self._z_pred = self.z.copy()
+        self.initial_actuation.omega_rad_s[rows] = omega
+        self.initial_actuation.alpha_rad[rows] = alpha
+        self._v_pipe[:, rows] = 0.0
+        self._motor_pipe[:, rows] = omega
+        self._v_applied[rows] = 0.0
+        self.thrust_scale[rows] = 1.0
 
     @property
     def disturbance_estimate(self) -> np.ndarray:
@@ -175,10 +189,13 @@ class FormationController:
         u = u / self.thrust_scale[:, None]
         omega, alpha = actuator_inverse(u)
         if self.lead_ticks:
-            self._v_applied = self._v_pipe.pop(0)
-            self._v_pipe.append(v)
-            self._motor_pipe.append(omega)
-            omega = self._motor_pipe.pop(0)
+            self._v_applied = self._v_pipe[0].copy()
+            self._v_pipe = np.roll(self._v_pipe, -1, axis=0)
+            self._v_pipe[-1] = v
+            omega_now = self._motor_pipe[0].copy()
+            self._motor_pipe = np.roll(self._motor_pipe, -1, axis=0)
+            self._motor_pipe[-1] = omega
+            omega = omega_now
         else:
             self._v_applied = v
         return Actuation(omega, alpha)

@@ -242,3 +242,65 @@ class RawOffsets:
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.h_fn(t_s), dtype=float), np.asarray(self.h_dot_fn(t_s), dtype=float)
+
+
+def _quintic_coefficients(x0, v0, x1, T):
+    """Coefficients c0..c5 (each shaped like x0) of the quintic with x(0) = x0, x'(0) = v0,
+    x''(0) = 0, x(T) = x1, x'(T) = 0, x''(T) = 0."""
+    d = x1 - x0 - v0 * T
+    c3 = (10.0 * d + 4.0 * v0 * T) / T**3
+    c4 = (-15.0 * d - 7.0 * v0 * T) / T**4
+    c5 = (6.0 * d + 3.0 * v0 * T) / T**5
+    return x0, v0, c3, c4, c5
+
+
+@dataclass(frozen=True)
+class QuinticTransfer(Formation):
+    """From a moving state (position, velocity, attitude, attitude rate at t0) to rest at a target
+    position and attitude at t0 + duration, by a quintic per axis (zero acceleration at both ends);
+    it holds the target afterwards. Used for a flight controller's own manoeuvres (hold, land,
+    takeoff) entered at any speed; before t0 it holds the start at rest. Arrays are (N, 3)."""
+
+    p0: np.ndarray
+    p_dot0: np.ndarray
+    p1: np.ndarray
+    eta0: np.ndarray
+    eta_dot0: np.ndarray
+    eta1: np.ndarray
+    t0_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.p0).reshape(-1, 3).shape[0]
+        for name in ("p0", "p_dot0", "p1", "eta0", "eta_dot0", "eta1"):
+            object.__setattr__(self, name, _as_agents(name, np.asarray(getattr(self, name), dtype=float).reshape(-1, 3), n))
+        if not (np.isfinite(self.duration_s) and self.duration_s > 0 and np.isfinite(self.t0_s)):
+            raise ParameterError(f"transfer duration must be a positive number of seconds, got {self.duration_s!r}")
+
+    @property
+    def n_agents(self) -> int:
+        return self.p0.shape[0]
+
+    @property
+    def end_s(self) -> float:
+        return self.t0_s + self.duration_s
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        T = self.duration_s
+        tau = min(max(t_s - self.t0_s, 0.0), T)
+
+        def ev(x0, v0, x1):
+            z = np.zeros_like(x0)
+            if t_s >= self.t0_s + T:
+                return x1, z, z
+            if t_s < self.t0_s:
+                return x0, z, z
+            c0, c1, c3, c4, c5 = _quintic_coefficients(x0, v0, x1, T)
+            x = c0 + tau * (c1 + tau * tau * (c3 + tau * (c4 + tau * c5)))
+            xd = c1 + tau * tau * (3.0 * c3 + tau * (4.0 * c4 + 5.0 * c5 * tau))
+            xdd = tau * (6.0 * c3 + tau * (12.0 * c4 + 20.0 * c5 * tau))
+            return x, xd, xdd
+
+        p, pd, pdd = ev(self.p0, self.p_dot0, self.p1)
+        e, ed, edd = ev(self.eta0, self.eta_dot0, self.eta1)
+        return Kinematics(p, pd, pdd, e, ed, edd)

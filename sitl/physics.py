@@ -86,12 +86,11 @@ def _derivative(s, rho, P, out):
 
 
 @numba.njit(cache=True)
-def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, P, dt, n_steps, rho_out):
-    """Advance every drone n_steps physics steps of dt with the commands held. Returns hist_pos."""
+def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out):
+    """Advance every drone n_steps physics steps of dt with the commands held. params (N, 11) and
+    delay_steps (N,) are per drone. Returns hist_pos."""
     n = state.shape[0]
     H = alpha_hist.shape[1]
-    wmax, amax = P[9], P[10]
-    m, g, kf = P[0], P[1], P[7]
     k1 = np.empty(13)
     k2 = np.empty(13)
     k3 = np.empty(13)
@@ -100,6 +99,9 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
     rho = np.empty(6)
     for _ in range(n_steps):
         for i in range(n):
+            P = params[i]
+            wmax, amax = P[9], P[10]
+            m, g, kf = P[0], P[1], P[7]
             # Servo transport delay through a ring buffer; commands are clamped to the servo range.
             for j in range(3):
                 a = alpha_cmd[i, j]
@@ -108,7 +110,7 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                 elif a < -amax:
                     a = -amax
                 alpha_hist[i, hist_pos, j] = a
-            lag = (hist_pos - delay_steps) % H
+            lag = (hist_pos - delay_steps[i]) % H
             for j in range(3):
                 wj = omega_cmd[i, j]
                 if wj > wmax:
@@ -227,25 +229,46 @@ class Plant:
                  servo_delay_s: float | None = None) -> None:
         if not (dt_s > 0 and math.isfinite(dt_s)):
             raise ValueError(f"physics step must be a positive number of seconds, got {dt_s!r}")
-        self.airframe = airframe
         self.dt_s = float(dt_s)
-        self.params = airframe_vector(airframe)
-        delay = airframe.servo_delay_s if servo_delay_s is None else servo_delay_s
-        if not (math.isfinite(delay) and delay >= 0):
-            raise ValueError(f"servo delay must be a non-negative number of seconds, got {delay!r}")
-        self.delay_steps = int(round(delay / self.dt_s))
         self.n = int(n_drones)
+        if servo_delay_s is not None:
+            airframe = airframe.replace(servo_delay_s=servo_delay_s)
+        self.airframes = [airframe] * self.n
+        self.params = np.tile(airframe_vector(airframe), (self.n, 1))
+        self.delay_steps = np.full(self.n, self._steps_of(airframe.servo_delay_s), dtype=np.int64)
         self.state = np.zeros((self.n, PLANT_DIM))
         self.state[:, 6] = 1.0
         self.landed = np.ones(self.n, dtype=np.bool_)
         self.omega_cmd = np.zeros((self.n, 3))
         self.alpha_cmd = np.zeros((self.n, 3))
-        self.alpha_hist = np.zeros((self.n, self.delay_steps + 1, 3))
+        self.alpha_hist = np.zeros((self.n, int(self.delay_steps.max()) + 1, 3))
         self.hist_pos = 0
         self.rho = np.zeros((self.n, 6))
         """rho (29) actually applied during the last physics step (after limits and delay)."""
         self.time_s = 0.0
         self._steps = 0
+
+    def _steps_of(self, delay_s: float) -> int:
+        if not (math.isfinite(delay_s) and delay_s >= 0):
+            raise ValueError(f"servo delay must be a non-negative number of seconds, got {delay_s!r}")
+        return int(round(delay_s / self.dt_s))
+
+    @property
+    def airframe(self) -> Airframe:
+        """The airframe of drone 1 (all of them unless set_airframe changed one)."""
+        return self.airframes[0]
+
+    def set_airframe(self, i: int, af: Airframe) -> None:
+        """Change drone i's physical parameters (e.g. a parameter set over MAVLink)."""
+        self.airframes[i] = af
+        self.params[i] = airframe_vector(af)
+        steps = self._steps_of(af.servo_delay_s)
+        if steps + 1 > self.alpha_hist.shape[1]:
+            # a longer history: every drone keeps the angle its servos hold now
+            current = self.alpha_hist[np.arange(self.n), (self.hist_pos - self.delay_steps) % self.alpha_hist.shape[1]]
+            self.alpha_hist = np.repeat(current[:, None, :], steps + 1, axis=1)
+            self.hist_pos = 0
+        self.delay_steps[i] = steps
 
     def reset(self, position_m: np.ndarray, euler_rad: np.ndarray | None = None,
               velocity_b_m_s: np.ndarray | None = None, rate_b_rad_s: np.ndarray | None = None,

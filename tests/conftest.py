@@ -1,5 +1,9 @@
+import os
 import tomllib
 from pathlib import Path
+
+# pymavlink's own tools pick MAVLink 2 from the environment; set it before any test imports mavutil.
+os.environ.setdefault("MAVLINK20", "1")
 
 import numpy as np
 import pytest

@@ -87,3 +87,43 @@ def test_unknown_scenario_and_unreadable_files(tmp_path):
     broken = tmp_path / "broken.toml"
     broken.write_text("name = \n")
     assert "not valid TOML" in bad(tmp_path, "sim", "--scenario", str(broken))
+
+
+def test_sitl_up_bad_input(tmp_path):
+    import socket
+
+    assert "--home must be LAT,LON,ALT_M" in bad(tmp_path, "sitl", "up", "-n", "2", "--home", "53.4,abc,10")
+    assert "home latitude must be a number between -90 and 90" in bad(tmp_path, "sitl", "up", "--home", "nan,0,0")
+    assert "--speedup must be positive" in bad(tmp_path, "sitl", "up", "--speedup", "0")
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("127.0.0.1", 0))
+    port = taken.getsockname()[1]
+    try:
+        line = bad(tmp_path, "sitl", "up", "-n", "1", "--base-port", str(port), "--manifest", str(tmp_path / "m.json"))
+        assert f"cannot open UDP 127.0.0.1:{port} for vehicle 1 (companion link)" in line
+    finally:
+        taken.close()
+
+
+def test_sitl_up_stops_cleanly_on_sigint(tmp_path):
+    import signal
+    import time
+
+    manifest = tmp_path / "m.json"
+    proc = subprocess.Popen([sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", "3", "--base-port", "0",
+                             "--manifest", str(manifest)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not manifest.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert manifest.exists()
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "sysid" in out and "udpout:127.0.0.1:" in out and "stopped after" in out
+    assert "Traceback" not in err

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.formation import (ConstantFormation, EntryBlend, KeyframeFormation, RotatingPolygon,
-                                         quintic_blend)
+from triswarm.protocol.formation import (ConstantFormation, EntryBlend, KeyframeFormation, QuinticTransfer,
+                                         RotatingPolygon, quintic_blend)
 
 
 def assert_exact_derivative(formation, times, h=1e-5, tol=1e-6):
@@ -33,6 +33,7 @@ def keyframes():
     keyframes,
     lambda: EntryBlend(RotatingPolygon.paper(6), np.tile([1.0, -2.0, 0.0], (6, 1)), np.zeros(3), 1.0, 9.0),
     lambda: ConstantFormation(np.ones((4, 3)), np.zeros((4, 3))),
+    lambda: QuinticTransfer([[1, 2, 3]], [[10, -4, 1]], [[6, 0, 0]], [[0.5, -0.5, 1]], [[0, 0.3, 0]], [[0, 0, 1]], 2.0, 4.0),
 ])
 def test_offsets_have_exact_derivatives(make):
     assert_exact_derivative(make(), np.linspace(0.3, 19.7, 60))
@@ -88,3 +89,12 @@ def test_bad_formation_parameters_are_refused(kwargs, msg):
     base.update(kwargs)
     with pytest.raises(ParameterError, match=msg):
         RotatingPolygon(**base)
+
+
+def test_quintic_transfer_matches_its_boundary_conditions():
+    f = QuinticTransfer([[1, 2, 3]], [[10, -4, 1]], [[6, 0, 0]], [[0.5, -0.5, 1]], [[0, 0.3, 0]], [[0, 0, 1]], 2.0, 4.0)
+    k0, k1 = f.kinematics(2.0), f.kinematics(6.0)
+    assert np.allclose(k0.p, [[1, 2, 3]]) and np.allclose(k0.p_dot, [[10, -4, 1]]) and np.allclose(k0.p_ddot, 0)
+    assert np.allclose(k0.eta_dot, [[0, 0.3, 0]])
+    assert np.allclose(k1.p, [[6, 0, 0]]) and np.allclose(k1.p_dot, 0) and np.allclose(k1.p_ddot, 0, atol=1e-12)
+    assert np.allclose(f.kinematics(9.0).p, [[6, 0, 0]]) and np.allclose(f.kinematics(9.0).eta, [[0, 0, 1]])

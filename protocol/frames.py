@@ -1,0 +1,73 @@
+"""Frame conversions at the MAVLink boundary, and local <-> geodetic coordinates.
+
+Inside triswarm everything is in the paper's frames: earth x north, y west, z up; body x along arm
+1, z along the untilted thrust (FLU-like). MAVLink uses NED (earth) and FRD (body). With
+D = diag(1, -1, -1) (a half turn about x):
+
+    p_ned = D p_paper,   v_frd = D v_body,   R_ned_frd = D R_b2e D,
+    roll unchanged, pitch and yaw change sign, quaternion (w, x, y, z) -> (w, x, -y, -z).
+
+D is its own inverse, so every function here converts both ways.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+EARTH_RADIUS_M = 6371000.0
+_D = np.array([1.0, -1.0, -1.0])
+
+
+def flip(vec: np.ndarray) -> np.ndarray:
+    """Paper earth <-> NED for positions and velocities, body <-> FRD for body vectors and rates."""
+    return np.asarray(vec, dtype=float) * _D
+
+
+def euler_flip(euler_rad: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles, paper (body to earth) <-> MAVLink (FRD to NED): (r, p, y) -> (r, -p, -y)."""
+    return np.asarray(euler_rad, dtype=float) * _D
+
+
+def quaternion_flip(q: np.ndarray) -> np.ndarray:
+    """Body-to-earth quaternion (w, x, y, z), paper <-> MAVLink (FRD to NED)."""
+    return np.asarray(q, dtype=float) * np.array([1.0, 1.0, -1.0, -1.0])
+
+
+class LocalProjection:
+    """Azimuthal equidistant projection around a home point (as PX4's map_projection): local
+    north/east metres <-> latitude/longitude degrees. Exact along great circles through home;
+    errors stay below a millimetre within a few kilometres."""
+
+    def __init__(self, lat_deg: float, lon_deg: float, alt_m: float = 0.0) -> None:
+        if not (math.isfinite(lat_deg) and -90.0 < lat_deg < 90.0):
+            raise ValueError(f"home latitude must be a number between -90 and 90 degrees, got {lat_deg!r}")
+        if not (math.isfinite(lon_deg) and -180.0 <= lon_deg <= 180.0):
+            raise ValueError(f"home longitude must be a number between -180 and 180 degrees, got {lon_deg!r}")
+        if not math.isfinite(alt_m):
+            raise ValueError(f"home altitude must be a finite number of metres, got {alt_m!r}")
+        self.lat_deg, self.lon_deg, self.alt_m = float(lat_deg), float(lon_deg), float(alt_m)
+        self._lat0 = math.radians(lat_deg)
+        self._lon0 = math.radians(lon_deg)
+        self._sin0, self._cos0 = math.sin(self._lat0), math.cos(self._lat0)
+
+    def to_geodetic(self, north_m: float, east_m: float) -> tuple[float, float]:
+        x, y = north_m / EARTH_RADIUS_M, east_m / EARTH_RADIUS_M
+        c = math.hypot(x, y)
+        if c == 0.0:
+            return self.lat_deg, self.lon_deg
+        sc, cc = math.sin(c), math.cos(c)
+        lat = math.asin(cc * self._sin0 + x * sc * self._cos0 / c)
+        lon = self._lon0 + math.atan2(y * sc, c * self._cos0 * cc - x * self._sin0 * sc)
+        return math.degrees(lat), math.degrees(lon)
+
+    def to_local(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+        lat, dlon = math.radians(lat_deg), math.radians(lon_deg) - self._lon0
+        sl, cl = math.sin(lat), math.cos(lat)
+        arg = min(1.0, max(-1.0, self._sin0 * sl + self._cos0 * cl * math.cos(dlon)))
+        c = math.acos(arg)
+        k = 1.0 if c == 0.0 else c / math.sin(c)
+        north = k * (self._cos0 * sl - self._sin0 * cl * math.cos(dlon)) * EARTH_RADIUS_M
+        east = k * cl * math.sin(dlon) * EARTH_RADIUS_M
+        return north, east

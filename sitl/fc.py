@@ -1,0 +1,695 @@
+"""The autopilot logic of one simulated tri-rotor: modes, arming, failsafe, the command and
+parameter protocols, a battery, counters, and telemetry in MAVLink's frames.
+
+No sockets and no clock: the swarm passes sim time and a sensor snapshot; handlers return the
+messages to send (pymavlink message objects) and the link layer packs them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from triswarm.protocol import frames
+from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe, ParameterError
+from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink
+
+LINKS = ("companion", "gcs")
+FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2: force
+FIRMWARE_VERSION = (0, 1, 0)
+
+# Messages streamed, with the code used in their rate parameter (SC_<code>_HZ on the companion link,
+# SG_<code>_HZ on the ground-station link) and the default rates [Hz] on each link.
+STREAMS = {
+    "ATT": (mavlink.MAVLINK_MSG_ID_ATTITUDE, 100.0, 10.0),
+    "ATTQ": (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 50.0, 0.0),
+    "LPOS": (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100.0, 10.0),
+    "GPOS": (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0, 5.0),
+    "ODOM": (mavlink.MAVLINK_MSG_ID_ODOMETRY, 50.0, 0.0),
+    "IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 50.0, 0.0),
+    "SYS": (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0, 1.0),
+    "BATT": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, 1.0, 1.0),
+    "EXT": (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 1.0, 1.0),
+    "HOME": (mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.2, 0.2),
+    "ACT": (mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 10.0, 2.0),
+    "TIME": (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1.0, 1.0),
+}
+STREAM_CODE = {msg_id: code for code, (msg_id, _, _) in STREAMS.items()}
+LINK_PREFIX = {"companion": "SC", "gcs": "SG"}
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    default: float
+    lo: float
+    hi: float
+    doc: str
+
+
+def param_specs(af: Airframe) -> list[ParamSpec]:
+    specs = [
+        ParamSpec("MASS_KG", af.mass_kg, 0.05, 50.0, "vehicle mass [kg]"),
+        ParamSpec("IXX_KGM2", af.Ixx_kg_m2, 1e-5, 10.0, "inertia about body x [kg m^2]"),
+        ParamSpec("IYY_KGM2", af.Iyy_kg_m2, 1e-5, 10.0, "inertia about body y [kg m^2]"),
+        ParamSpec("IZZ_KGM2", af.Izz_kg_m2, 1e-5, 10.0, "inertia about body z [kg m^2]"),
+        ParamSpec("IYZ_KGM2", af.Iyz_kg_m2, -1.0, 1.0, "product of inertia y-z [kg m^2]"),
+        ParamSpec("KF", af.k_f_N_s2, 1e-8, 1e-2, "thrust coefficient [N s^2/rad^2]"),
+        ParamSpec("KD", af.k_d_N_m_s2, 0.0, 1e-3, "drag-torque coefficient [N m s^2/rad^2]"),
+        ParamSpec("ARM_LEN_M", af.arm_length_m, 0.02, 5.0, "arm length [m]"),
+        ParamSpec("SERVO_DELAY_S", af.servo_delay_s, 0.0, 0.2, "servo transport delay [s]"),
+        ParamSpec("MOT_MAX_RPM", af.max_rotor_speed_rad_s / RPM_TO_RAD_S, 500.0, 100000.0, "motor speed limit [RPM]"),
+        ParamSpec("SERVO_LIM_DEG", math.degrees(af.servo_limit_rad), 5.0, 180.0, "servo range +- [deg]"),
+        ParamSpec("NOISE_POS_M", 0.0, 0.0, 10.0, "position noise, 1 sigma [m]"),
+        ParamSpec("NOISE_VEL_MS", 0.0, 0.0, 10.0, "velocity noise, 1 sigma [m/s]"),
+        ParamSpec("NOISE_ATT_RAD", 0.0, 0.0, 1.0, "attitude noise, 1 sigma [rad]"),
+        ParamSpec("NOISE_GYRO_RADS", 0.0, 0.0, 10.0, "body-rate noise, 1 sigma [rad/s]"),
+        ParamSpec("FS_TIMEOUT_S", 0.3, 0.02, 60.0, "armed without actuator command this long: hold"),
+        ParamSpec("FS_LAND_DELAY_S", 5.0, 0.0, 600.0, "failsafe hold this long, then land"),
+        ParamSpec("LAND_SPEED_M_S", 0.7, 0.1, 5.0, "descent speed when landing [m/s]"),
+        ParamSpec("TKO_ALT_M", 2.5, 0.5, 100.0, "takeoff altitude above home [m]"),
+        ParamSpec("DISARM_DELAY_S", 2.0, 0.0, 60.0, "on the ground in LAND this long: disarm"),
+        ParamSpec("DISARM_PRFLT_S", 10.0, 0.5, 600.0, "armed on the ground without commands this long: disarm"),
+        ParamSpec("BAT_CAP_MAH", 5000.0, 100.0, 100000.0, "battery capacity [mAh]"),
+        ParamSpec("BAT_CELLS", 3.0, 1.0, 14.0, "battery cells in series"),
+        ParamSpec("BAT_ARM_PCT", 20.0, 0.0, 100.0, "refuse to arm below this charge [%]"),
+    ]
+    for code, (_, rate_c, rate_g) in STREAMS.items():
+        specs.append(ParamSpec(f"SC_{code}_HZ", rate_c, 0.0, 1000.0, f"stream rate of {code} on the companion link [Hz]"))
+        specs.append(ParamSpec(f"SG_{code}_HZ", rate_g, 0.0, 1000.0, f"stream rate of {code} on the ground-station link [Hz]"))
+    return specs
+
+
+@dataclass
+class Snapshot:
+    """What the vehicle's estimator reports (truth plus configured noise), paper frames."""
+
+    position_m: np.ndarray
+    velocity_e_m_s: np.ndarray
+    velocity_b_m_s: np.ndarray
+    euler_rad: np.ndarray
+    quaternion: np.ndarray
+    rate_b_rad_s: np.ndarray
+    specific_force_b: np.ndarray
+    landed: bool
+    rho: np.ndarray
+
+
+@dataclass
+class Outgoing:
+    msg: object
+    link: str | None  # None: every link
+
+
+class FlightController:
+    """One vehicle's autopilot. ``sysid`` from 1; ``start_m`` its resting place (paper frame)."""
+
+    def __init__(self, sysid: int, airframe: Airframe, home: LocalProjection, start_m: np.ndarray,
+                 boot_unix_s: float) -> None:
+        self.sysid = sysid
+        self.nominal = airframe
+        self.home = home
+        self.start_m = np.asarray(start_m, dtype=float)
+        self.boot_unix_s = boot_unix_s
+        self.specs = param_specs(airframe)
+        self.spec_by_name = {p.name: p for p in self.specs}
+        self.params = {p.name: float(p.default) for p in self.specs}
+        self.armed = False
+        self.mode = CustomMode.EXTERNAL
+        self.failsafe = False
+        self.mode_since_s = 0.0
+        self.failsafe_since_s = 0.0
+        self.landed_since_s = 0.0
+        self.ext_omega = np.zeros(3)
+        self.ext_alpha = np.zeros(3)
+        self.last_command_s = -math.inf
+        self.takeoff_alt_m: float | None = None
+        self.counters: Counter[str] = Counter()
+        self.outbox: list[Outgoing] = []
+        self.mode_changed = False
+        """Set when the swarm must (re)start its own controller for this vehicle."""
+        self.actuators_changed = False
+        """Set when an actuator command arrived that the plant has not been given yet."""
+        self.airframe_changed = False
+        self.battery_used_mah = 0.0
+        self.battery_voltage_v = self._open_circuit_voltage()
+        self.battery_current_a = 0.0
+
+    # -- parameters -------------------------------------------------------------------------
+
+    def airframe(self) -> Airframe:
+        p = self.params
+        return dataclasses.replace(
+            self.nominal, mass_kg=p["MASS_KG"], Ixx_kg_m2=p["IXX_KGM2"], Iyy_kg_m2=p["IYY_KGM2"],
+            Izz_kg_m2=p["IZZ_KGM2"], Iyz_kg_m2=p["IYZ_KGM2"], k_f_N_s2=p["KF"], k_d_N_m_s2=p["KD"],
+            arm_length_m=p["ARM_LEN_M"], servo_delay_s=p["SERVO_DELAY_S"],
+            max_rotor_speed_rad_s=p["MOT_MAX_RPM"] * RPM_TO_RAD_S, servo_limit_rad=math.radians(p["SERVO_LIM_DEG"]))
+
+    def set_param(self, name: str, value: float) -> str | None:
+        """Set a parameter; returns None, or the reason it was refused."""
+        spec = self.spec_by_name.get(name)
+        if spec is None:
+            return f"unknown parameter {name}"
+        if not math.isfinite(value):
+            return f"{name} must be a finite number"
+        if not spec.lo <= value <= spec.hi:
+            return f"{name} must be within [{spec.lo:g}, {spec.hi:g}], got {value:g}"
+        old = self.params[name]
+        self.params[name] = float(value)
+        try:
+            self.airframe()
+        except ParameterError as exc:
+            self.params[name] = old
+            return str(exc)
+        if name in ("MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ_KGM2", "KF", "KD", "ARM_LEN_M",
+                    "SERVO_DELAY_S", "MOT_MAX_RPM", "SERVO_LIM_DEG"):
+            self.airframe_changed = True
+        return None
+
+    def stream_rate_hz(self, link: str, msg_id: int) -> float:
+        code = STREAM_CODE.get(msg_id)
+        return 0.0 if code is None else self.params[f"{LINK_PREFIX[link]}_{code}_HZ"]
+
+    def _param_value(self, name: str):
+        index = next(i for i, p in enumerate(self.specs) if p.name == name)
+        return mavlink.MAVLink_param_value_message(name.encode(), self.params[name], mavlink.MAV_PARAM_TYPE_REAL32,
+                                                   len(self.specs), index)
+
+    # -- state ------------------------------------------------------------------------------
+
+    def announce(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        self.outbox.append(Outgoing(mavlink.MAVLink_statustext_message(severity, text[:50].encode()), None))
+
+    def set_mode(self, mode: CustomMode, now_s: float, failsafe: bool = False) -> None:
+        changed = mode != self.mode or failsafe != self.failsafe
+        self.mode = mode
+        self.failsafe = failsafe
+        self.mode_since_s = now_s
+        if changed:
+            self.mode_changed = True
+            self.outbox.append(Outgoing(self.heartbeat(), None))  # clients learn the state at once
+
+    def arm(self, now_s: float, snap: Snapshot, force: bool) -> tuple[int, str | None]:
+        if self.armed:
+            return mavlink.MAV_RESULT_ACCEPTED, None
+        if not force:
+            reason = self._arming_problem(snap)
+            if reason:
+                return mavlink.MAV_RESULT_DENIED, reason
+        self.armed = True
+        self.last_command_s = now_s  # the grace period before the failsafe starts counting
+        if self.mode != CustomMode.TAKEOFF:
+            self.set_mode(CustomMode.EXTERNAL, now_s)
+        self.outbox.append(Outgoing(self.heartbeat(), None))
+        self.announce("armed")
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def _arming_problem(self, snap: Snapshot) -> str | None:
+        if self.battery_remaining_pct() < self.params["BAT_ARM_PCT"]:
+            return f"arming refused: battery {self.battery_remaining_pct():.0f}% below {self.params['BAT_ARM_PCT']:.0f}%"
+        if not snap.landed:
+            return "arming refused: not on the ground"
+        tilt = math.degrees(max(abs(snap.euler_rad[0]), abs(snap.euler_rad[1])))
+        if tilt > 30.0:
+            return f"arming refused: tilted {tilt:.0f} deg, more than 30"
+        return None
+
+    def disarm(self, now_s: float, snap: Snapshot, force: bool, reason: str = "disarmed") -> tuple[int, str | None]:
+        if not self.armed:
+            return mavlink.MAV_RESULT_ACCEPTED, None
+        if not force and not snap.landed:
+            return mavlink.MAV_RESULT_DENIED, "disarm refused: in the air (force to kill)"
+        self.armed = False
+        self.set_mode(CustomMode.EXTERNAL, now_s)
+        self.ext_omega[:] = 0.0
+        self.outbox.append(Outgoing(self.heartbeat(), None))
+        self.announce(reason)
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def tick(self, now_s: float, dt_s: float, snap: Snapshot, internal_done: bool) -> None:
+        """Failsafe timers, automatic mode changes and the battery, once per control period."""
+        if snap.landed:
+            if self.landed_since_s < 0:
+                self.landed_since_s = now_s
+        else:
+            self.landed_since_s = -1.0
+        if self.armed:
+            silent_s = now_s - self.last_command_s
+            if self.mode == CustomMode.EXTERNAL and snap.landed:
+                # nothing to hold on the ground: disarm when nobody flies the drone (preflight timeout)
+                if silent_s > self.params["DISARM_PRFLT_S"]:
+                    self.disarm(now_s, snap, force=True,
+                                reason=f"disarmed: no actuator command for {self.params['DISARM_PRFLT_S']:g} s on ground")
+            elif self.mode == CustomMode.EXTERNAL and silent_s > self.params["FS_TIMEOUT_S"]:
+                self.set_mode(CustomMode.HOLD, now_s, failsafe=True)
+                self.announce(f"failsafe: no actuator command for {self.params['FS_TIMEOUT_S']:g} s, holding",
+                              mavlink.MAV_SEVERITY_CRITICAL)
+                self.failsafe_since_s = now_s
+            elif (self.mode == CustomMode.HOLD and self.failsafe
+                  and now_s - self.failsafe_since_s > self.params["FS_LAND_DELAY_S"]):
+                self.set_mode(CustomMode.LAND, now_s, failsafe=True)
+                self.announce("failsafe: landing", mavlink.MAV_SEVERITY_CRITICAL)
+            elif self.mode == CustomMode.TAKEOFF and internal_done:
+                self.set_mode(CustomMode.HOLD, now_s)
+                self.announce("takeoff complete, holding")
+            elif (self.mode == CustomMode.LAND and snap.landed and self.landed_since_s >= 0
+                  and now_s - self.landed_since_s >= self.params["DISARM_DELAY_S"]):
+                self.disarm(now_s, snap, force=True, reason="landed, disarmed")
+        self._battery(snap, dt_s)
+
+    # -- battery ----------------------------------------------------------------------------
+
+    def _open_circuit_voltage(self) -> float:
+        soc = 1.0 - self.battery_used_mah / self.params["BAT_CAP_MAH"]
+        return self.params["BAT_CELLS"] * (3.3 + 0.9 * max(0.0, min(1.0, soc)))
+
+    def battery_remaining_pct(self) -> float:
+        return max(0.0, 100.0 * (1.0 - self.battery_used_mah / self.params["BAT_CAP_MAH"]))
+
+    def _battery(self, snap: Snapshot, dt_s: float) -> None:
+        """Shaft power k_d w^3 per rotor at 70 % efficiency, plus 3 W of avionics."""
+        omega2 = np.hypot(snap.rho[0:3], snap.rho[3:6])
+        shaft_w = float(np.sum(self.params["KD"] * omega2 ** 1.5))
+        ocv = self._open_circuit_voltage()
+        current = (shaft_w / 0.7 + 3.0) / max(ocv, 1.0)
+        self.battery_current_a = current
+        self.battery_voltage_v = ocv - 0.015 * self.params["BAT_CELLS"] * current
+        self.battery_used_mah += current * dt_s / 3.6
+
+    # -- incoming messages ------------------------------------------------------------------
+
+    def handle(self, msg, link: str, now_s: float, snap: Snapshot) -> list[Outgoing]:
+        """React to one parsed message that came in on ``link``. Returns replies."""
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            self.counters["drop_bad_crc" if "CRC" in reason else "drop_bad_frame"] += 1
+            return []
+        self.counters["rx_frames"] += 1
+        target_sys = getattr(msg, "target_system", 0)
+        if target_sys not in (0, self.sysid):
+            self.counters["drop_foreign_system"] += 1
+            return []
+        target_comp = getattr(msg, "target_component", 0)
+        if target_comp not in (0, mavlink.MAV_COMP_ID_AUTOPILOT1):
+            self.counters["not_for_autopilot"] += 1
+            return []
+        handler = getattr(self, f"_on_{mtype.lower()}", None)
+        if handler is None:
+            self.counters["ignored_messages"] += 1
+            return []
+        return handler(msg, link, now_s, snap)
+
+    def _on_set_actuator_control_target(self, msg, link, now_s, snap):
+        if msg.group_mlx != ACTUATOR_GROUP:
+            self.counters["drop_actuator_group"] += 1
+            return []
+        af = self.airframe()
+        dec = decode_actuators(msg.controls, af.max_rotor_speed_rad_s, af.servo_limit_rad)
+        if dec.dropped_non_finite:
+            self.counters["drop_actuator_non_finite"] += 1
+            return []
+        self.counters["actuator_values_clamped"] += dec.clamped
+        if not self.armed:
+            self.counters["actuator_ignored_disarmed"] += 1
+            return []
+        if self.mode != CustomMode.EXTERNAL:
+            if not self.failsafe:
+                self.counters["actuator_ignored_mode"] += 1
+                return []
+            self.set_mode(CustomMode.EXTERNAL, now_s)
+            self.announce("actuator commands back, failsafe cleared", mavlink.MAV_SEVERITY_WARNING)
+        self.ext_omega[:] = dec.omega_rad_s
+        self.ext_alpha[:] = dec.alpha_rad
+        self.actuators_changed = True
+        self.last_command_s = now_s
+        self.counters["actuator_commands"] += 1
+        return []
+
+    def _on_timesync(self, msg, link, now_s, snap):
+        if msg.tc1 != 0:
+            return []
+        fields = dict(tc1=int(now_s * 1e9), ts1=msg.ts1)
+        if "target_system" in msg.get_fieldnames():
+            fields.update(target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent())
+        return [Outgoing(mavlink.MAVLink_timesync_message(**fields), link)]
+
+    def _on_ping(self, msg, link, now_s, snap):
+        if msg.target_system != 0:
+            return []  # a reply to somebody's ping, not a request
+        return [Outgoing(mavlink.MAVLink_ping_message(msg.time_usec, msg.seq, msg.get_srcSystem(),
+                                                      msg.get_srcComponent()), link)]
+
+    def _on_file_transfer_protocol(self, msg, link, now_s, snap):
+        """No MAVLink FTP here (and none claimed): answer every request with a NAK so a client that
+        tries FTP first (MAVProxy fetching parameters) falls back at once instead of timing out."""
+        req = bytes(msg.payload)
+        if len(req) < 12:
+            return []
+        seq, session, opcode = int.from_bytes(req[0:2], "little"), req[2], req[3]
+        if opcode >= 128:
+            return []  # an ACK or NAK, not a request
+        error = 10 if opcode in (4, 5) else 7  # OpenFileRO/OpenFileWO: FileNotFound; else UnknownCommand
+        payload = bytearray(251)
+        payload[0:2] = ((seq + 1) & 0xFFFF).to_bytes(2, "little")
+        payload[2], payload[3], payload[4], payload[5] = session, 129, 1, opcode
+        payload[12] = error
+        return [Outgoing(mavlink.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(),
+                                                                        list(payload)), link)]
+
+    def _on_param_request_list(self, msg, link, now_s, snap):
+        return [Outgoing(self._param_value(p.name), link) for p in self.specs]
+
+    def _on_param_request_read(self, msg, link, now_s, snap):
+        if msg.param_index >= 0:
+            if msg.param_index >= len(self.specs):
+                self.announce(f"no parameter with index {msg.param_index}", mavlink.MAV_SEVERITY_WARNING)
+                return []
+            name = self.specs[msg.param_index].name
+        else:
+            name = _param_name(msg.param_id)
+            if name not in self.params:
+                self.counters["param_unknown"] += 1
+                self.announce(f"unknown parameter {name}", mavlink.MAV_SEVERITY_WARNING)
+                return []
+        return [Outgoing(self._param_value(name), link)]
+
+    def _on_param_set(self, msg, link, now_s, snap):
+        name = _param_name(msg.param_id)
+        problem = self.set_param(name, float(msg.param_value))
+        if problem:
+            self.counters["param_refused"] += 1
+            self.announce(f"param refused: {problem}", mavlink.MAV_SEVERITY_WARNING)
+            if name not in self.params:
+                return []
+        return [Outgoing(self._param_value(name), None)]
+
+    def _on_command_long(self, msg, link, now_s, snap):
+        params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7]
+        return self._command(msg, msg.command, params, link, now_s, snap)
+
+    def _on_command_int(self, msg, link, now_s, snap):
+        params = [msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z]
+        return self._command(msg, msg.command, params, link, now_s, snap)
+
+    # Parameters (from 1) that must be finite numbers for a command to mean anything; NaN elsewhere
+    # keeps its MAVLink meaning ("unset", e.g. the takeoff altitude).
+    REQUIRED_PARAMS = {
+        mavlink.MAV_CMD_COMPONENT_ARM_DISARM: (1,),
+        mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: (1, 2),
+        mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: (1,),
+        mavlink.MAV_CMD_REQUEST_MESSAGE: (1,),
+        mavlink.MAV_CMD_DO_SET_MODE: (1, 2),
+    }
+
+    def _command(self, msg, command: int, p: list[float], link, now_s, snap) -> list[Outgoing]:
+        self.counters["commands"] += 1
+        replies: list[Outgoing] = []
+        reason = None
+        bad = [k for k in self.REQUIRED_PARAMS.get(command, ()) if not (math.isfinite(p[k - 1]) and abs(p[k - 1]) < 2**31)]
+        if bad:
+            self.counters["commands_bad_params"] += 1
+            result, reason = mavlink.MAV_RESULT_DENIED, f"command {command} refused: param{bad[0]} is not a usable number"
+        elif command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            force = abs(p[1] - FORCE_MAGIC) < 0.5
+            if p[0] >= 0.5:
+                result, reason = self.arm(now_s, snap, force)
+            else:
+                result, reason = self.disarm(now_s, snap, force)
+        elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result, reason = self._set_interval(int(p[0]), p[1], link)
+        elif command == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
+            msg_id = int(p[0])
+            rate = self.stream_rate_hz(link, msg_id)
+            interval = -1 if rate <= 0 else int(round(1e6 / rate))
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                interval = 1_000_000
+            replies.append(Outgoing(mavlink.MAVLink_message_interval_message(msg_id, interval), link))
+            result = mavlink.MAV_RESULT_ACCEPTED
+        elif command in (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            msg_id = (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+                      if command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES else int(p[0]))
+            out = self.build(msg_id, now_s, snap)
+            if out is None:
+                result, reason = mavlink.MAV_RESULT_UNSUPPORTED, None
+            else:
+                result = mavlink.MAV_RESULT_ACCEPTED
+                replies.append(Outgoing(out, link))
+        elif command == mavlink.MAV_CMD_DO_SET_MODE:
+            result, reason = self._do_set_mode(p, now_s, snap)
+        elif command == mavlink.MAV_CMD_NAV_TAKEOFF:
+            result, reason = self._takeoff(p[6], now_s, snap)
+        elif command == mavlink.MAV_CMD_NAV_LAND:
+            if not self.armed:
+                result, reason = mavlink.MAV_RESULT_DENIED, "land refused: not armed"
+            else:
+                self.set_mode(CustomMode.LAND, now_s)
+                result = mavlink.MAV_RESULT_ACCEPTED
+        else:
+            self.counters["commands_unsupported"] += 1
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+        if reason:
+            self.announce(reason, mavlink.MAV_SEVERITY_WARNING)
+        ack = mavlink.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        return [Outgoing(ack, link)] + replies
+
+    def _set_interval(self, msg_id: int, interval_us: float, link: str) -> tuple[int, str | None]:
+        code = STREAM_CODE.get(msg_id)
+        if code is None:
+            return mavlink.MAV_RESULT_UNSUPPORTED, None
+        name = f"{LINK_PREFIX[link]}_{code}_HZ"
+        if interval_us == 0:
+            rate = self.spec_by_name[name].default
+        elif interval_us < 0:
+            rate = 0.0
+        else:
+            rate = 1e6 / interval_us
+        problem = self.set_param(name, rate)
+        if problem:
+            return mavlink.MAV_RESULT_DENIED, f"interval refused: {problem}"
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def _do_set_mode(self, p, now_s, snap) -> tuple[int, str | None]:
+        if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return mavlink.MAV_RESULT_UNSUPPORTED, "only custom modes are supported"
+        try:
+            mode = CustomMode(int(p[1]))
+        except ValueError:
+            return mavlink.MAV_RESULT_DENIED, f"unknown custom mode {int(p[1])}"
+        if mode == CustomMode.TAKEOFF:
+            return self._takeoff(float("nan"), now_s, snap)
+        self.set_mode(mode, now_s)
+        if mode == CustomMode.EXTERNAL:
+            self.last_command_s = now_s
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def _takeoff(self, alt_amsl_m: float, now_s, snap) -> tuple[int, str | None]:
+        if not self.armed:
+            return mavlink.MAV_RESULT_DENIED, "takeoff refused: not armed"
+        if not snap.landed:
+            return mavlink.MAV_RESULT_DENIED, "takeoff refused: already flying"
+        rel = alt_amsl_m - self.home.alt_m if math.isfinite(alt_amsl_m) else self.params["TKO_ALT_M"]
+        self.takeoff_alt_m = max(0.5, min(100.0, rel)) if math.isfinite(rel) else self.params["TKO_ALT_M"]
+        self.set_mode(CustomMode.TAKEOFF, now_s)
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    # -- outgoing telemetry -----------------------------------------------------------------
+
+    def heartbeat(self):
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        if self.failsafe and self.armed:
+            status = mavlink.MAV_STATE_CRITICAL
+        elif self.armed:
+            status = mavlink.MAV_STATE_ACTIVE
+        else:
+            status = mavlink.MAV_STATE_STANDBY
+        return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_TRICOPTER, mavlink.MAV_AUTOPILOT_GENERIC, base,
+                                                 int(self.mode), status, 3)
+
+    def landed_state(self, snap: Snapshot) -> int:
+        if snap.landed:
+            return mavlink.MAV_LANDED_STATE_ON_GROUND
+        if self.mode == CustomMode.TAKEOFF:
+            return mavlink.MAV_LANDED_STATE_TAKEOFF
+        if self.mode == CustomMode.LAND:
+            return mavlink.MAV_LANDED_STATE_LANDING
+        return mavlink.MAV_LANDED_STATE_IN_AIR
+
+    def build(self, msg_id: int, now_s: float, snap: Snapshot):
+        """The message ``msg_id`` describing the vehicle now, or None if this autopilot has none."""
+        builder = _BUILDERS.get(msg_id)
+        return None if builder is None else builder(self, now_s, snap)
+
+
+def _param_name(param_id) -> str:
+    if isinstance(param_id, bytes):
+        param_id = param_id.decode("ascii", errors="replace")
+    return param_id.split("\x00", 1)[0]
+
+
+def _ms(now_s: float) -> int:
+    return int(now_s * 1000.0) & 0xFFFFFFFF
+
+
+def _us(now_s: float) -> int:
+    return int(now_s * 1e6)
+
+
+# Each builder converts the paper-frame snapshot to MAVLink's NED/FRD here and only here.
+
+def _attitude(fc, now_s, s):
+    r, p, y = frames.euler_flip(s.euler_rad)
+    wr, wp, wy = frames.flip(s.rate_b_rad_s)
+    return mavlink.MAVLink_attitude_message(_ms(now_s), r, p, y, wr, wp, wy)
+
+
+def _attitude_quaternion(fc, now_s, s):
+    q = frames.quaternion_flip(s.quaternion)
+    wr, wp, wy = frames.flip(s.rate_b_rad_s)
+    return mavlink.MAVLink_attitude_quaternion_message(_ms(now_s), q[0], q[1], q[2], q[3], wr, wp, wy, [0.0] * 4)
+
+
+def _local_position(fc, now_s, s):
+    x, y, z = frames.flip(s.position_m)
+    vx, vy, vz = frames.flip(s.velocity_e_m_s)
+    return mavlink.MAVLink_local_position_ned_message(_ms(now_s), x, y, z, vx, vy, vz)
+
+
+def _global_position(fc, now_s, s):
+    north, east, down = frames.flip(s.position_m)
+    lat, lon = fc.home.to_geodetic(north, east)
+    vx, vy, vz = frames.flip(s.velocity_e_m_s)
+    yaw = frames.euler_flip(s.euler_rad)[2]
+    hdg = int(round(math.degrees(yaw) * 100.0)) % 36000
+    return mavlink.MAVLink_global_position_int_message(
+        _ms(now_s), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round((fc.home.alt_m - down) * 1000.0)),
+        int(round(-down * 1000.0)), _clamp16(vx * 100), _clamp16(vy * 100), _clamp16(vz * 100), hdg)
+
+
+def _odometry(fc, now_s, s):
+    x, y, z = frames.flip(s.position_m)
+    q = frames.quaternion_flip(s.quaternion)
+    vx, vy, vz = frames.flip(s.velocity_b_m_s)
+    wr, wp, wy = frames.flip(s.rate_b_rad_s)
+    unknown = [float("nan")] + [0.0] * 20
+    return mavlink.MAVLink_odometry_message(
+        _us(now_s), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, x, y, z, list(q), vx, vy, vz, wr, wp, wy,
+        unknown, unknown, 0, mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100)
+
+
+MAG_NED_GAUSS = np.array([0.19, 0.0, 0.45])
+
+
+def _highres_imu(fc, now_s, s):
+    ax, ay, az = frames.flip(s.specific_force_b)
+    gx, gy, gz = frames.flip(s.rate_b_rad_s)
+    R_ned_frd = _rotation_ned_frd(s.quaternion)
+    mx, my, mz = R_ned_frd.T @ MAG_NED_GAUSS
+    alt = fc.home.alt_m + float(s.position_m[2])
+    pressure_hpa = 1013.25 * (1.0 - 2.25577e-5 * alt) ** 5.25588
+    return mavlink.MAVLink_highres_imu_message(_us(now_s), ax, ay, az, gx, gy, gz, mx, my, mz, pressure_hpa, 0.0, alt,
+                                               15.0 - 0.0065 * alt, 0x1FFF, 0)
+
+
+def _rotation_ned_frd(q_paper):
+    qw, qx, qy, qz = frames.quaternion_flip(q_paper)
+    return np.array([
+        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+    ])
+
+
+SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+           | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+           | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+           | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
+
+
+def _sys_status(fc, now_s, s):
+    c = fc.counters
+    drops = sum(v for k, v in c.items() if k.startswith("drop_"))
+    total = drops + c["rx_frames"]
+    drop_rate = int(10000 * drops / total) if total else 0
+    return mavlink.MAVLink_sys_status_message(
+        SENSORS, SENSORS, SENSORS, 100, int(fc.battery_voltage_v * 1000), int(fc.battery_current_a * 100),
+        int(fc.battery_remaining_pct()), min(drop_rate, 10000), min(drops, 65535),
+        min(c["drop_bad_crc"], 65535), min(c["drop_bad_frame"], 65535), min(c["drop_foreign_system"], 65535),
+        min(c["drop_actuator_non_finite"], 65535))
+
+
+def _battery_status(fc, now_s, s):
+    cells = int(fc.params["BAT_CELLS"])
+    per_cell = int(fc.battery_voltage_v / cells * 1000)
+    voltages = [per_cell if i < cells else 65535 for i in range(10)]
+    return mavlink.MAVLink_battery_status_message(
+        0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767, voltages,
+        int(fc.battery_current_a * 100), int(fc.battery_used_mah), -1, int(fc.battery_remaining_pct()))
+
+
+def _extended_sys_state(fc, now_s, s):
+    return mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_UNDEFINED, fc.landed_state(s))
+
+
+def _home_position(fc, now_s, s):
+    north, east, down = frames.flip(fc.start_m)
+    lat, lon = fc.home.to_geodetic(north, east)
+    return mavlink.MAVLink_home_position_message(
+        int(round(lat * 1e7)), int(round(lon * 1e7)), int(round((fc.home.alt_m - down) * 1000)), north, east, down,
+        [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, _us(now_s))
+
+
+def _actuator_output_status(fc, now_s, s):
+    af = fc.airframe()
+    omega = np.sqrt(np.hypot(s.rho[0:3], s.rho[3:6]))
+    alpha = np.arctan2(s.rho[0:3], s.rho[3:6])
+    values = list(omega / af.max_rotor_speed_rad_s) + list(alpha / af.servo_limit_rad) + [0.0] * 26
+    return mavlink.MAVLink_actuator_output_status_message(_us(now_s), 0b111111, values)
+
+
+def _system_time(fc, now_s, s):
+    return mavlink.MAVLink_system_time_message(int((fc.boot_unix_s + now_s) * 1e6), _ms(now_s))
+
+
+def _autopilot_version(fc, now_s, s):
+    # Honest: what this autopilot implements (no missions, no FTP, no position/attitude targets;
+    # the actuator-target capability bit has been retired from MAVLink, so it is not claimed).
+    caps = (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+            | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+    major, minor, patch = FIRMWARE_VERSION
+    version = (major << 24) | (minor << 16) | (patch << 8) | 255  # 255: official release
+    return mavlink.MAVLink_autopilot_version_message(caps, version, 0, 0, 0, b"triswarm", b"\0" * 8, b"\0" * 8,
+                                                     0x7157, 0x0003, 0x74730000 + fc.sysid)
+
+
+def _heartbeat(fc, now_s, s):
+    return fc.heartbeat()
+
+
+def _clamp16(v: float) -> int:
+    return int(max(-32767, min(32767, round(v))))
+
+
+_BUILDERS = {
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT: _heartbeat,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: _attitude,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: _attitude_quaternion,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: _local_position,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: _global_position,
+    mavlink.MAVLINK_MSG_ID_ODOMETRY: _odometry,
+    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: _highres_imu,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: _sys_status,
+    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: _battery_status,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
+    mavlink.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
+    mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: _actuator_output_status,
+    mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
+    mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
+}

@@ -1,0 +1,315 @@
+"""The MAVLink face of the simulated swarm: one UDP endpoint per vehicle and link, real-time pacing.
+
+Each link is a UDP server socket: a client (pymavlink ``udpout:``, MAVSDK ``udpout://``, MAVProxy)
+sends first (a heartbeat), and the vehicle then streams to every address heard from in the last
+few seconds. One asyncio loop runs the physics of all vehicles in step with the wall clock (times
+``speedup``), answers every datagram as it arrives, and sends the telemetry that falls due: all the
+messages one link owes at one physics step go out in one datagram.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import json
+import os
+import socket
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from triswarm.protocol import frames
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
+
+from .fc import LINKS, STREAMS
+from .swarm import SitlSwarm
+
+PEER_TIMEOUT_S = 5.0
+MAX_PEERS_PER_LINK = 8
+MAX_BURST_STEPS = 200
+MAX_DATAGRAMS_PER_WAKEUP = 256  # drain a flood in slices so the physics keeps its clock
+RECV_BUFFER_BYTES = 4 << 20
+
+
+@dataclass
+class Link:
+    vehicle: int
+    name: str
+    host: str
+    port: int = 0
+    sock: socket.socket | None = None
+    codec: object = None
+    parser: object = None
+    peers: dict = field(default_factory=dict)  # address -> wall time last heard
+    datagrams_rx: int = 0
+    datagrams_tx: int = 0
+    send_errors: int = 0
+
+    def live_peers(self, now_wall: float) -> list:
+        dead = [a for a, t in self.peers.items() if now_wall - t > PEER_TIMEOUT_S]
+        for a in dead:
+            del self.peers[a]
+        return list(self.peers)
+
+    def urls(self) -> dict:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
+        return {"pymavlink": f"udpout:{host}:{self.port}", "mavsdk": f"udpout://{host}:{self.port}",
+                "host": host, "port": self.port}
+
+
+class SitlServer:
+    def __init__(self, swarm: SitlSwarm, bind_host: str = "127.0.0.1", base_port: int = 14600,
+                 speedup: float = 1.0) -> None:
+        if not (speedup > 0 and speedup <= 10000):
+            raise ValueError(f"speedup must be a number above 0 and at most 10000, got {speedup!r}")
+        self.swarm = swarm
+        self.bind_host = bind_host
+        self.base_port = base_port
+        self.speedup = float(speedup)
+        self.links: list[dict[str, Link]] = []
+        self._heap: list = []
+        self._version: dict = {}
+        self.sent = Counter()
+        self.max_lag_s = 0.0
+        self.overruns = 0
+        self.wall_start = 0.0
+        self.wall_elapsed = 0.0
+        self.exceptions = 0
+
+    # -- sockets ----------------------------------------------------------------------------
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+        for i, fc in enumerate(self.swarm.fcs):
+            links = {}
+            for k, name in enumerate(LINKS):
+                port = 0 if self.base_port == 0 else self.base_port + 2 * i + k
+                link = Link(i, name, self.bind_host, port, codec=new_codec(fc.sysid, COMP_AUTOPILOT),
+                            parser=new_codec(fc.sysid, COMP_AUTOPILOT))
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
+                    sock.bind((self.bind_host, port))
+                except OSError as exc:
+                    sock.close()
+                    self.close()
+                    raise OSError(f"cannot open UDP {self.bind_host}:{port} for vehicle {fc.sysid} "
+                                  f"({name} link): {exc.strerror}") from None
+                sock.setblocking(False)
+                link.sock = sock
+                link.port = sock.getsockname()[1]
+                loop.add_reader(sock.fileno(), self._drain, link)
+                links[name] = link
+            self.links.append(links)
+        for i in range(self.swarm.n):
+            self._schedule_vehicle(i)
+
+    def close(self) -> None:
+        loop = asyncio.get_event_loop()
+        for links in self.links:
+            for link in links.values():
+                if link.sock is not None:
+                    loop.remove_reader(link.sock.fileno())
+                    link.sock.close()
+                    link.sock = None
+
+    def manifest(self) -> dict:
+        home = self.swarm.home
+        vehicles = []
+        for i, fc in enumerate(self.swarm.fcs):
+            vehicles.append({
+                "sysid": fc.sysid,
+                "start_ned_m": [float(v) + 0.0 for v in frames.flip(fc.start_m)],
+                "links": {name: link.urls() for name, link in self.links[i].items()},
+            })
+        return {"home": {"lat_deg": home.lat_deg, "lon_deg": home.lon_deg, "alt_m": home.alt_m},
+                "frame": "local NED, origin at home", "speedup": self.speedup,
+                "physics_hz": self.swarm.physics_hz, "pid": os.getpid(), "vehicles": vehicles}
+
+    # -- incoming ---------------------------------------------------------------------------
+
+    def _drain(self, link: Link) -> None:
+        for _ in range(MAX_DATAGRAMS_PER_WAKEUP):
+            try:
+                data, addr = link.sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                link.send_errors += 1  # e.g. ICMP port unreachable from a peer that left
+                return
+            self.on_datagram(link, data, addr)
+
+    def on_datagram(self, link: Link, data: bytes, addr) -> None:
+        now_wall = time.monotonic()
+        link.datagrams_rx += 1
+        if addr not in link.peers and len(link.peers) >= MAX_PEERS_PER_LINK:
+            link.live_peers(now_wall)
+            if len(link.peers) >= MAX_PEERS_PER_LINK:
+                self.swarm.fcs[link.vehicle].counters["drop_too_many_peers"] += 1
+                return
+        link.peers[addr] = now_wall
+        fc = self.swarm.fcs[link.vehicle]
+        try:
+            reset_parser(link.parser)
+            msgs = link.parser.parse_buffer(data) or []
+        except Exception:  # a parser that chokes on garbage loses the datagram, never the vehicle
+            fc.counters["drop_unparseable_datagram"] += 1
+            reset_parser(link.parser)
+            return
+        snap = self.swarm.snapshot(link.vehicle)
+        replies = []
+        for msg in msgs:
+            try:
+                replies.extend(fc.handle(msg, link.name, self.swarm.time_s, snap))
+            except Exception:
+                self.exceptions += 1
+                fc.counters["drop_handler_error"] += 1
+        if fc.airframe_changed:
+            self.swarm.apply_airframe(link.vehicle)
+        if replies or fc.outbox:
+            self._schedule_vehicle(link.vehicle)  # a rate may have changed
+        for out in replies:
+            self._send(link.vehicle, out.msg, out.link)
+        self._flush_outbox(link.vehicle)
+
+    # -- outgoing ---------------------------------------------------------------------------
+
+    def _flush_outbox(self, i: int) -> None:
+        fc = self.swarm.fcs[i]
+        while fc.outbox:
+            out = fc.outbox.pop(0)
+            self._send(i, out.msg, out.link)
+
+    def _send(self, i: int, msg, link_name: str | None) -> None:
+        names = LINKS if link_name is None else (link_name,)
+        now_wall = time.monotonic()
+        for name in names:
+            link = self.links[i][name]
+            peers = link.live_peers(now_wall)
+            if not peers:
+                continue
+            frame = msg.pack(link.codec)
+            self._sendto(link, frame, peers)
+
+    def _sendto(self, link: Link, data: bytes, peers) -> None:
+        if link.sock is None:
+            return
+        for addr in peers:
+            try:
+                link.sock.sendto(data, addr)
+                link.datagrams_tx += 1
+            except OSError:  # a full send buffer or an unreachable peer loses this datagram only
+                link.send_errors += 1
+
+    def _schedule_vehicle(self, i: int) -> None:
+        """(Re)build vehicle i's stream schedule from its rate parameters (old entries lapse)."""
+        fc = self.swarm.fcs[i]
+        now = self.swarm.time_s
+        dt = self.swarm.dt_s
+        for name in LINKS:
+            for msg_id in [mavlink.MAVLINK_MSG_ID_HEARTBEAT] + [m for m, _, _ in STREAMS.values()]:
+                rate = 1.0 if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT else fc.stream_rate_hz(name, msg_id)
+                key = (i, name, msg_id)
+                old = self._version.get(key)
+                if old is not None and old[1] == rate:
+                    continue
+                version = (old[0] + 1 if old else 0, rate)
+                self._version[key] = version
+                if rate > 0:
+                    period_steps = max(1, int(round(1.0 / (rate * dt))))
+                    step = (self.swarm.steps // period_steps + 1) * period_steps
+                    heapq.heappush(self._heap, (step, i, name, msg_id, version[0], period_steps))
+
+    def _send_due(self) -> None:
+        """Send every stream message due at this step, one datagram per link."""
+        heap, step = self._heap, self.swarm.steps
+        if not heap or heap[0][0] > step:
+            return
+        batches: dict[tuple[int, str], list[int]] = {}
+        while heap and heap[0][0] <= step:
+            due, i, name, msg_id, version, period = heapq.heappop(heap)
+            if self._version.get((i, name, msg_id), (None,))[0] != version:
+                continue  # rescheduled since
+            heapq.heappush(heap, (due + period, i, name, msg_id, version, period))
+            batches.setdefault((i, name), []).append(msg_id)
+        now_wall = time.monotonic()
+        for (i, name), ids in batches.items():
+            link = self.links[i][name]
+            peers = link.live_peers(now_wall)
+            if not peers:
+                continue
+            fc = self.swarm.fcs[i]
+            snap = self.swarm.snapshot(i)
+            data = bytearray()
+            for msg_id in ids:
+                msg = fc.build(msg_id, self.swarm.time_s, snap)
+                data += msg.pack(link.codec)
+                self.sent[msg_id] += 1
+            self._sendto(link, bytes(data), peers)
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        rate = self.swarm.physics_hz * self.speedup  # physics steps per wall second
+        self.swarm.step()  # warm up (compiled kernels load on first use) before the clock starts
+        self._send_due()
+        self.wall_start = loop.time()
+        start_steps = self.swarm.steps
+        while not stop.is_set():
+            now = loop.time()
+            target = start_steps + int((now - self.wall_start) * rate)
+            behind = target - self.swarm.steps
+            if behind > 0:
+                lag = behind / rate
+                self.max_lag_s = max(self.max_lag_s, lag)
+                if behind > MAX_BURST_STEPS:
+                    self.overruns += 1
+                for _ in range(min(behind, MAX_BURST_STEPS)):
+                    self.swarm.step()
+                    self._send_due()
+                    for i, fc in enumerate(self.swarm.fcs):
+                        if fc.outbox:
+                            self._flush_outbox(i)
+            next_wall = self.wall_start + (self.swarm.steps - start_steps + 1) / rate
+            await asyncio.sleep(max(0.0, next_wall - loop.time()))
+        self.wall_elapsed = loop.time() - self.wall_start
+
+    def stats(self) -> dict:
+        sim = self.swarm.time_s
+        vehicles = []
+        for i, fc in enumerate(self.swarm.fcs):
+            vehicles.append({
+                "sysid": fc.sysid,
+                "counters": dict(sorted(fc.counters.items())),
+                "drops": sum(v for k, v in fc.counters.items() if k.startswith("drop_")),
+                "datagrams_rx": {n: lk.datagrams_rx for n, lk in self.links[i].items()},
+                "datagrams_tx": {n: lk.datagrams_tx for n, lk in self.links[i].items()},
+                "armed": fc.armed, "mode": fc.mode.name,
+            })
+        return {
+            "sim_time_s": sim,
+            "wall_time_s": self.wall_elapsed,
+            "speedup_requested": self.speedup,
+            "speedup_achieved": sim / self.wall_elapsed if self.wall_elapsed > 0 else None,
+            "max_lag_s": self.max_lag_s,
+            "overruns": self.overruns,
+            "handler_exceptions": self.exceptions,
+            "messages_sent": {mavlink.mavlink_map[k].msgname if k in mavlink.mavlink_map else str(k): v
+                              for k, v in sorted(self.sent.items())},
+            "vehicles": vehicles,
+        }
+
+
+def write_json_atomically(path: Path, data: dict) -> None:
+    """Write, fsync, rename: a reader sees the old file or the new one, never half of one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with tmp.open("w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)

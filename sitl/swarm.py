@@ -1,0 +1,238 @@
+"""N simulated flight controllers around one batched plant: the clock, the sensors, the autopilots'
+own position controller, and what the actuators receive. No sockets (see ``server.py``).
+
+The autopilots' own controller (modes HOLD, LAND, TAKEOFF and the failsafe) is the math core's
+``FormationController`` with every vehicle pinned to its own reference (no neighbours), so the
+SITL flies its failsafe with the same code the companions fly formations with.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from triswarm.protocol import model
+from triswarm.protocol.agent import protocol_input
+from triswarm.protocol.airframe import TABLE_1, Airframe
+from triswarm.protocol.controller import FormationController
+from triswarm.protocol.design import DesignWeights, design
+from triswarm.protocol.formation import QuinticTransfer
+from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.graph import Schedule, Topology
+from triswarm.protocol.mavlink import CustomMode
+from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBANCE, DEFAULT_R, DEFAULT_R_BAR
+from triswarm.protocol.rfl import RFL
+
+from .fc import FlightController, Snapshot
+from .physics import POS, QUAT, Plant, quaternion_from_euler
+
+INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
+DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
+
+
+def ground_grid(n: int, spacing_m: float = 2.5) -> np.ndarray:
+    """Resting places on the ground, a few metres apart, in rows, centred on the origin (paper frame)."""
+    cols = max(1, math.ceil(math.sqrt(n)))
+    rows = math.ceil(n / cols)
+    k = np.arange(n)
+    north = (k // cols - (rows - 1) / 2.0) * spacing_m
+    west = ((cols - 1) / 2.0 - k % cols) * spacing_m
+    return np.stack([north, west, np.zeros(n)], axis=1)
+
+
+def autopilot_design(airframe: Airframe):
+    """The flight controller's own position controller: the plan defaults, one agent, c = 1."""
+    weights = DesignWeights(np.array(DEFAULT_Q), np.array(DEFAULT_R), np.array(DEFAULT_Q_BAR), np.array(DEFAULT_R_BAR),
+                            coupling_margin=2.0, Q_disturbance=np.array(DEFAULT_Q_DISTURBANCE))
+    solo = Schedule((Topology("solo", np.zeros((1, 1)), np.ones(1)),), 1.0)
+    return design(RFL.from_airframe(airframe), solo, weights)
+
+
+@dataclass
+class _SensorRows:
+    position_m: np.ndarray
+    velocity_e_m_s: np.ndarray
+    velocity_b_m_s: np.ndarray
+    euler_rad: np.ndarray
+    quaternion: np.ndarray
+    rate_b_rad_s: np.ndarray
+    specific_force_b: np.ndarray
+    landed: np.ndarray
+    rho: np.ndarray
+
+
+class SitlSwarm:
+    def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
+                 physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
+                 boot_unix_s: float | None = None) -> None:
+        if n < 1:
+            raise ValueError(f"a swarm needs at least one vehicle, got {n}")
+        self.n = n
+        self.home = home or LocalProjection(*DEFAULT_HOME)
+        self.physics_hz = float(physics_hz)
+        self.dt_s = 1.0 / self.physics_hz
+        self.control_every = max(1, int(round(self.physics_hz / control_hz)))
+        self.control_dt_s = self.control_every * self.dt_s
+        self.start_m = ground_grid(n, spacing_m)
+        self.plant = Plant(airframe, n, dt_s=self.dt_s)
+        self.plant.reset(self.start_m)
+        boot = time.time() if boot_unix_s is None else boot_unix_s
+        self.fcs = [FlightController(i + 1, airframe, self.home, self.start_m[i], boot) for i in range(n)]
+        self.rng = np.random.default_rng(seed)
+        self.steps = 0
+        self.time_s = 0.0
+        self._rows: _SensorRows | None = None
+        self._rows_step = -1
+        self._snapshots: dict[int, Snapshot] = {}
+        self.omega_cmd = np.zeros((n, 3))
+        self.alpha_cmd = np.zeros((n, 3))
+        self._design = autopilot_design(airframe)
+        self.inner = FormationController(self._design, n, 1.0 / self.control_dt_s)
+        self.inner.reset(self.plant.observe().paper_state())
+        self.inner_ref: list[QuinticTransfer | None] = [None] * n
+        self._hover_omega = float(model.hover_trim(airframe)[0][0])
+
+    # -- sensors ----------------------------------------------------------------------------
+
+    def sensor_rows(self) -> _SensorRows:
+        """Every vehicle's estimate this step: the plant's state plus each vehicle's noise."""
+        if self._rows_step == self.steps:
+            return self._rows
+        obs = self.plant.observe()
+        sig = np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
+                         fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs])
+        pos, vel_e, vel_b = obs.position_m, obs.velocity_e_m_s, obs.velocity_b_m_s
+        eta, rate = obs.euler_rad, obs.rate_b_rad_s
+        if np.any(sig > 0):
+            noise = self.rng.standard_normal((self.n, 4, 3)) * sig[:, :, None]
+            pos, vel_e, eta, rate = pos + noise[:, 0], vel_e + noise[:, 1], eta + noise[:, 2], rate + noise[:, 3]
+            vel_b = vel_b + noise[:, 1]
+        quat = quaternion_from_euler(eta) if np.any(sig[:, 2] > 0) else self.plant.state[:, QUAT].copy()
+        rho = self.plant.rho.copy()
+        kf_m = np.array([af.k_f_N_s2 / af.mass_kg for af in self.plant.airframes])
+        force_b = kf_m[:, None] * (rho @ model.H_f.T)
+        # on the ground the accelerometer also feels the normal force
+        g = np.array([af.gravity_m_s2 for af in self.plant.airframes])
+        R = model.rotation_body_to_earth(obs.euler_rad)
+        normal = np.where(obs.landed[:, None], g[:, None] * R[:, 2, :], 0.0)
+        self._rows = _SensorRows(pos, vel_e, vel_b, eta, quat, rate, force_b + normal, obs.landed, rho)
+        self._rows_step = self.steps
+        self._snapshots = {}
+        return self._rows
+
+    def snapshot(self, i: int) -> Snapshot:
+        rows = self.sensor_rows()
+        snap = self._snapshots.get(i)
+        if snap is None:
+            snap = Snapshot(rows.position_m[i], rows.velocity_e_m_s[i], rows.velocity_b_m_s[i], rows.euler_rad[i],
+                            rows.quaternion[i], rows.rate_b_rad_s[i], rows.specific_force_b[i], bool(rows.landed[i]),
+                            rows.rho[i])
+            self._snapshots[i] = snap
+        return snap
+
+    def apply_airframe(self, i: int) -> None:
+        """After a parameter set: the plant of vehicle i takes its flight controller's values."""
+        fc = self.fcs[i]
+        if fc.airframe_changed:
+            self.plant.set_airframe(i, fc.airframe())
+            fc.airframe_changed = False
+
+    # -- time -------------------------------------------------------------------------------
+
+    def step(self) -> None:
+        """One physics step; the flight controllers run every control period."""
+        changed = False
+        if self.steps % self.control_every == 0:
+            self._control_tick()
+            changed = True
+        for i, fc in enumerate(self.fcs):
+            if fc.actuators_changed or changed:
+                fc.actuators_changed = False
+                if fc.armed and fc.mode == CustomMode.EXTERNAL:
+                    self.omega_cmd[i] = fc.ext_omega
+                    self.alpha_cmd[i] = fc.ext_alpha
+                changed = True
+        if changed:
+            self.plant.command(self.omega_cmd, self.alpha_cmd)
+        self.plant.advance(1)
+        self.steps += 1
+        self.time_s = self.steps * self.dt_s
+
+    def _control_tick(self) -> None:
+        now = self.time_s
+        internal = []
+        for i, fc in enumerate(self.fcs):
+            snap = self.snapshot(i)
+            ref = self.inner_ref[i]
+            fc.tick(now, self.control_dt_s, snap, internal_done=ref is not None and now >= ref.end_s)
+            self.apply_airframe(i)
+            if fc.mode_changed:
+                fc.mode_changed = False
+                self._start_manoeuvre(i, fc, snap, now)
+            if not fc.armed:
+                self.omega_cmd[i] = 0.0
+                self.alpha_cmd[i] = 0.0
+                self.inner_ref[i] = None
+            elif fc.mode in INTERNAL_MODES:
+                internal.append(i)
+        if internal:
+            self._fly_internal(np.array(internal), now)
+
+    def _start_manoeuvre(self, i: int, fc: FlightController, snap: Snapshot, now: float) -> None:
+        """A new internal mode: restart vehicle i's own controller from where it is now."""
+        if fc.mode not in INTERNAL_MODES or not fc.armed:
+            self.inner_ref[i] = None
+            return
+        x = self._paper_state(i)
+        self.inner.reset(x[None, :], rows=np.array([i]))
+        p0, v0 = snap.position_m.copy(), snap.velocity_e_m_s.copy()
+        eta0 = snap.euler_rad.copy()
+        eta_dot0 = model.euler_rate_matrix(eta0) @ snap.rate_b_rad_s
+        level = np.array([0.0, 0.0, eta0[2]])
+        if fc.mode == CustomMode.HOLD:
+            T = max(2.0, float(np.linalg.norm(v0)) / 2.0)
+            p1 = p0 + v0 * T / 2.0
+            p1[2] = p0[2] if snap.landed else max(p1[2], 0.5)
+        elif fc.mode == CustomMode.LAND:
+            height = max(p0[2], 0.0) + 0.3  # aim 0.3 m below the ground so it touches down
+            T = max(2.0, 1.875 * height / fc.params["LAND_SPEED_M_S"])
+            p1 = np.array([p0[0] + v0[0] * 0.5, p0[1] + v0[1] * 0.5, -0.3])
+        else:  # TAKEOFF
+            alt = fc.takeoff_alt_m or fc.params["TKO_ALT_M"]
+            T = max(2.0, 1.875 * alt / 1.5)
+            p1 = np.array([p0[0], p0[1], alt])
+        self.inner_ref[i] = QuinticTransfer(p0, v0, p1, eta0, eta_dot0, level, now, T)
+
+    def _paper_state(self, i: int) -> np.ndarray:
+        rows = self.sensor_rows()
+        return np.concatenate([rows.velocity_b_m_s[i], rows.rate_b_rad_s[i], rows.euler_rad[i], rows.position_m[i]])
+
+    def _fly_internal(self, rows: np.ndarray, now: float) -> None:
+        s = self.sensor_rows()
+        y = np.concatenate([s.euler_rad, s.position_m], axis=1)
+        xhat = self.inner.observe(y)
+        t_p = now + self.inner.lead_s
+        h = xhat.copy()
+        gamma = np.zeros((self.n, 6))
+        for i in rows:
+            ref = self.inner_ref[i]
+            hi, _ = ref.offsets(t_p)
+            hm, hdm = ref.offsets(t_p + 0.5 * self.control_dt_s)
+            h[i] = hi[0]
+            gamma[i] = self._design.gamma(hm, hdm)[0]
+        zero = np.zeros(self.n)
+        v = protocol_input(self._design, xhat - h, np.zeros_like(h), zero, np.ones(self.n), np.zeros(12), gamma)
+        act = self.inner.actuate(v)
+        for i in rows:
+            fc = self.fcs[i]
+            on_ground_done = s.landed[i] and (fc.mode == CustomMode.LAND or (fc.mode == CustomMode.HOLD and
+                                                                               self.inner_ref[i].p1[0, 2] <= 0.0))
+            if on_ground_done:
+                self.omega_cmd[i] = 0.3 * self._hover_omega  # idle, well below lift-off
+                self.alpha_cmd[i] = 0.0
+            else:
+                self.omega_cmd[i] = act.omega_rad_s[i]
+                self.alpha_cmd[i] = act.alpha_rad[i]
