@@ -87,7 +87,8 @@ def param_specs(af: Airframe) -> list[ParamSpec]:
 
 @dataclass
 class Snapshot:
-    """What the vehicle's estimator reports (truth plus configured noise), paper frames."""
+    """What the vehicle's estimator reports (truth plus configured noise), paper frames. The swarm
+    holds one with a leading vehicle axis; ``row(i)`` is vehicle i's."""
 
     position_m: np.ndarray
     velocity_e_m_s: np.ndarray
@@ -98,6 +99,9 @@ class Snapshot:
     specific_force_b: np.ndarray
     landed: bool
     rho: np.ndarray
+
+    def row(self, i: int) -> "Snapshot":
+        return Snapshot(*(getattr(self, f.name)[i] for f in dataclasses.fields(self)))
 
 
 @dataclass

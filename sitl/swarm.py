@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,7 +26,7 @@ from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBAN
 from triswarm.protocol.rfl import RFL
 
 from .fc import FlightController, Snapshot
-from .physics import POS, QUAT, Plant, quaternion_from_euler
+from .physics import QUAT, Plant, quaternion_from_euler
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
 DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
@@ -51,19 +50,6 @@ def autopilot_design(airframe: Airframe):
     return design(RFL.from_airframe(airframe), solo, weights)
 
 
-@dataclass
-class _SensorRows:
-    position_m: np.ndarray
-    velocity_e_m_s: np.ndarray
-    velocity_b_m_s: np.ndarray
-    euler_rad: np.ndarray
-    quaternion: np.ndarray
-    rate_b_rad_s: np.ndarray
-    specific_force_b: np.ndarray
-    landed: np.ndarray
-    rho: np.ndarray
-
-
 class SitlSwarm:
     def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
                  physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
@@ -84,7 +70,7 @@ class SitlSwarm:
         self.rng = np.random.default_rng(seed)
         self.steps = 0
         self.time_s = 0.0
-        self._rows: _SensorRows | None = None
+        self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
         self.omega_cmd = np.zeros((n, 3))
@@ -97,7 +83,7 @@ class SitlSwarm:
 
     # -- sensors ----------------------------------------------------------------------------
 
-    def sensor_rows(self) -> _SensorRows:
+    def sensor_rows(self) -> Snapshot:
         """Every vehicle's estimate this step: the plant's state plus each vehicle's noise."""
         if self._rows_step == self.steps:
             return self._rows
@@ -118,7 +104,7 @@ class SitlSwarm:
         g = np.array([af.gravity_m_s2 for af in self.plant.airframes])
         R = model.rotation_body_to_earth(obs.euler_rad)
         normal = np.where(obs.landed[:, None], g[:, None] * R[:, 2, :], 0.0)
-        self._rows = _SensorRows(pos, vel_e, vel_b, eta, quat, rate, force_b + normal, obs.landed, rho)
+        self._rows = Snapshot(pos, vel_e, vel_b, eta, quat, rate, force_b + normal, obs.landed, rho)
         self._rows_step = self.steps
         self._snapshots = {}
         return self._rows
@@ -127,9 +113,8 @@ class SitlSwarm:
         rows = self.sensor_rows()
         snap = self._snapshots.get(i)
         if snap is None:
-            snap = Snapshot(rows.position_m[i], rows.velocity_e_m_s[i], rows.velocity_b_m_s[i], rows.euler_rad[i],
-                            rows.quaternion[i], rows.rate_b_rad_s[i], rows.specific_force_b[i], bool(rows.landed[i]),
-                            rows.rho[i])
+            snap = rows.row(i)
+            snap.landed = bool(snap.landed)
             self._snapshots[i] = snap
         return snap
 

@@ -73,8 +73,7 @@ def command(conn, target: int, cmd: int, *params: float, timeout: float = 3.0):
     raise TimeoutError(f"no COMMAND_ACK for command {cmd}")
 
 
-def read_param(conn, target: int, name: str, timeout: float = 3.0) -> float:
-    conn.mav.param_request_read_send(target, 1, name.encode(), -1)
+def _param_reply(conn, name: str, timeout: float) -> float:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         m = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.5)
@@ -83,14 +82,15 @@ def read_param(conn, target: int, name: str, timeout: float = 3.0) -> float:
     raise TimeoutError(f"no PARAM_VALUE for {name}")
 
 
+def read_param(conn, target: int, name: str, timeout: float = 3.0) -> float:
+    conn.mav.param_request_read_send(target, 1, name.encode(), -1)
+    return _param_reply(conn, name, timeout)
+
+
 def set_param(conn, target: int, name: str, value: float, timeout: float = 3.0) -> float:
+    """Set a parameter; returns the value the vehicle then reports (unchanged if it refused)."""
     conn.mav.param_set_send(target, 1, name.encode(), value, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        m = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.5)
-        if m is not None and m.param_id == name:
-            return m.param_value
-    raise TimeoutError(f"no PARAM_VALUE after setting {name}")
+    return _param_reply(conn, name, timeout)
 
 
 def ports_free(manifest: dict) -> bool:
