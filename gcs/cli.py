@@ -213,6 +213,7 @@ def sitl_up(
     """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
     import asyncio
 
+    from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
 
     with user_errors():
@@ -223,11 +224,11 @@ def sitl_up(
         _finite("duration", duration, positive=True)
         if not 0 <= base_port <= 65535 - 2 * n:
             raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
-        opts = SitlOptions(n=n, manifest=manifest, home=parse_home(home), speedup=speedup, rate_hz=rate_hz,
-                           physics_hz=physics_hz, base_port=base_port, bind=bind, spacing_m=spacing_m, stats=stats,
-                           duration_s=duration)
+        opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
+                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration)
 
         def ready(m: dict) -> None:
+            write_json_atomically(manifest, m)
             if quiet:
                 return
             table = Table(title=f"{n} simulated tri-rotors, home {opts.home[0]:.6f}, {opts.home[1]:.6f}, "
@@ -248,6 +249,8 @@ def sitl_up(
             result = asyncio.run(run_sitl(opts, on_ready=ready))
         except OSError as exc:
             raise UserError(str(exc)) from None
+        if stats is not None:
+            write_json_atomically(stats, result)
     if not quiet:
         rows = [(v["sysid"], v["drops"], v["counters"]) for v in result["vehicles"]]
         dropped = [f"{sid}: {drops}" for sid, drops, _ in rows if drops]

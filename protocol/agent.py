@@ -42,6 +42,29 @@ class DiscreteObserver:
         return xhat @ self.Phi.T + v @ self.Gamma_v.T + y @ self.Gamma_y.T
 
 
+@dataclass(frozen=True)
+class Reference:
+    """What one tick needs from the plan: the time its estimates refer to, the offsets h there,
+    the leader x0 there, and gamma (78) at the middle of the interval the command is held for
+    (with the leader's own feedforward, zero for a leader that obeys (70))."""
+
+    t_p: float
+    h: np.ndarray
+    x0: np.ndarray
+    gamma: np.ndarray
+
+
+def reference_at(design: Design, offsets, leader, t: float, lead_s: float, dt_s: float,
+                 rows: slice | np.ndarray = slice(None)) -> Reference:
+    """``offsets(t)`` and ``leader(t)`` give (h, h_dot) (N, 12) and (x0, x0_dot) (12,)."""
+    t_p = t + lead_s
+    h, _ = offsets(t_p)
+    x0, _ = leader(t_p)
+    h_mid, h_mid_dot = offsets(t_p + 0.5 * dt_s)
+    x0_mid, x0_mid_dot = leader(t_p + 0.5 * dt_s)
+    return Reference(t_p, h[rows], x0, design.gamma(h_mid[rows] + x0_mid, h_mid_dot[rows] + x0_mid_dot))
+
+
 def consensus_error(xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray, pinning: np.ndarray,
                     x0: np.ndarray) -> np.ndarray:
     """sum_j a_ij (xi_j - xi_i) + g_i (x0 - xi_i), shape (N, 12)."""

@@ -31,6 +31,7 @@ import numpy as np
 import scipy.linalg
 
 from .design import Design
+from . import kernels
 from .model import actuator_inverse
 from .rfl import RFL
 
@@ -98,9 +99,12 @@ class FormationController:
         self._Phi1, self._G1 = Phi1, G1
         # Prediction over the pipe: z(t + D dt) = Phi1^D z + sum_j Phi1^(D-1-j) G1 v_j.
         self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
-        self._pred_G = [np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1 for j in range(self.lead_ticks)]
+        self._pred_G = np.array([np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1
+                                 for j in range(self.lead_ticks)]).reshape(self.lead_ticks, self.n_z, 6)
         self._half_Phi, self._half_G = _zoh(A, B, 0.5 * self.dt_s)
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
+        self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
+        self._adapt_k = self.adaptation_rate * self.dt_s if self._Einv is not None else 0.0
         self.z: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self.thrust_scale = np.ones(self.n)
@@ -114,7 +118,8 @@ class FormationController:
             rows = np.arange(self.n)
             if self.z is None:
                 self.z = np.zeros((self.n, self.n_z))
-                self._y_prev = None
+                self._y_prev = np.zeros((self.n, 6))
+                self._fresh = np.ones(self.n, dtype=np.bool_)
                 self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
                 self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
                 self._v_applied = np.zeros((self.n, 6))
@@ -125,8 +130,8 @@ class FormationController:
         self.z[rows] = 0.0
         self.z[rows, :12] = self.rfl.phi_r(x)
         self._z_pred[rows] = self.z[rows]
-        if self._y_prev is not None:
-            self._y_prev[rows] = x[:, 6:12]
+        self._y_prev[rows] = x[:, 6:12]
+        self._fresh[rows] = True  # the first measurement after a reset is taken, not integrated
         hold = self.rfl.control(x, np.zeros((rows.size, 6)))
         omega, alpha = actuator_inverse(hold)
         self.initial_actuation.omega_rad_s[rows] = omega
@@ -157,55 +162,41 @@ class FormationController:
         Rows of y that are not finite are treated as missing: the estimate runs on the model."""
         if self.z is None:
             raise RuntimeError("FormationController.observe before reset")
-        y = np.asarray(y, dtype=float)
-        bad = ~np.all(np.isfinite(y), axis=1)
-        if self._y_prev is not None:
-            y_now = np.where(bad[:, None], self._y_prev, y)
-            z_new = self.z @ self._Phi.T + self._v_applied @ self._Gv.T + self._y_prev @ self._Gy0.T + y_now @ self._Gy1.T
-            if bad.any():
-                # missing measurement: propagate the open-loop model instead of the observer
-                z_new[bad] = self.z[bad] @ self._Phi1.T + self._v_applied[bad] @ self._G1.T
-            self.z = z_new
-            self._y_prev = y_now
-        elif not bad.any():
-            self._y_prev = y
-        z = self.z @ self._pred_Phi.T
-        for v, G in zip(self._v_pipe, self._pred_G):
-            z = z + v @ G.T
-        self._z_pred = z
-        return z[:, :12].copy()
+        y = np.ascontiguousarray(y, dtype=float).reshape(self.n, 6)
+        kernels.observe(self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi, self._Gv, self._Gy0,
+                        self._Gy1, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe, self._z_pred)
+        return self._z_pred[:, :12].copy()
 
     def actuate(self, v: np.ndarray) -> Actuation:
         """Turn the protocol input v (N, 6) for t + lead_s into the commands to send now."""
-        v = np.asarray(v, dtype=float)
-        if self._Einv is not None:
-            v = v - self._z_pred[:, 12:18] @ self._Einv.T  # cancel the estimated disturbance
-        z_mid = self._z_pred @ self._half_Phi.T + v @ self._half_G.T  # middle of the hold interval
-        u, y_ddot = self.rfl.control_xr(z_mid[:, :12], v)
-        if self._Einv is not None and self.adaptation_rate > 0:
-            a_cmd = y_ddot[:, 3:6].copy()
-            a_cmd[:, 2] += self.rfl.airframe.gravity_m_s2
-            self._adapt_thrust_scale(a_cmd)
-        u = u / self.thrust_scale[:, None]
-        omega, alpha = actuator_inverse(u)
-        if self.lead_ticks:
-            self._v_applied = self._v_pipe[0].copy()
-            self._v_pipe = np.roll(self._v_pipe, -1, axis=0)
-            self._v_pipe[-1] = v
-            omega_now = self._motor_pipe[0].copy()
-            self._motor_pipe = np.roll(self._motor_pipe, -1, axis=0)
-            self._motor_pipe[-1] = omega
-            omega = omega_now
-        else:
-            self._v_applied = v
-        return Actuation(omega, alpha)
+        v = np.ascontiguousarray(v, dtype=float).reshape(self.n, 6)
+        v_out = np.empty((self.n, 6))
+        omega = np.empty((self.n, 3))
+        alpha = np.empty((self.n, 3))
+        z_w = self.z[:, 12:15] if self._Einv is not None else np.zeros((self.n, 3))
+        r = self.rfl
+        kernels.actuate(self._z_pred, z_w, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
+                        self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, 1.4,
+                        self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], v_out, omega, alpha)
+        return Actuation(self._push(v_out, omega), alpha)
 
-    def _adapt_thrust_scale(self, a_cmd: np.ndarray) -> None:
-        """a_cmd: commanded specific thrust in the earth frame (model units). The translational
-        disturbance along it is w ~ (kappa_true / kappa - 1) a_cmd."""
-        w = self.z[:, 12:15]
-        norm2 = np.einsum("ni,ni->n", a_cmd, a_cmd)
-        ok = norm2 > 1.0  # below ~1 m/s^2 of commanded thrust the ratio says little
-        step = np.zeros(self.n)
-        step[ok] = self.adaptation_rate * self.dt_s * np.einsum("ni,ni->n", w[ok], a_cmd[ok]) / norm2[ok]
-        self.thrust_scale = np.clip(self.thrust_scale * (1.0 + step), *self.kappa_limits)
+    def _push(self, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
+        """Commit v (and its rotor speeds) to the pipe; return the rotor speeds to send now."""
+        if not self.lead_ticks:
+            self._v_applied = v
+            return omega
+        self._v_applied = self._v_pipe[0].copy()
+        self._v_pipe[:-1] = self._v_pipe[1:]
+        self._v_pipe[-1] = v
+        omega_now = self._motor_pipe[0].copy()
+        self._motor_pipe[:-1] = self._motor_pipe[1:]
+        self._motor_pipe[-1] = omega
+        return omega_now
+
+    def hold_tick(self, y: np.ndarray) -> None:
+        """A control period in which no new command went out (the loop fell behind): take the
+        measurement, and record that the actuators kept the last command."""
+        self.observe(y)
+        last_v = self._v_pipe[-1].copy() if self.lead_ticks else self._v_applied.copy()
+        last_w = self._motor_pipe[-1].copy() if self.lead_ticks else None
+        self._push(last_v, last_w)

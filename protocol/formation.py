@@ -81,6 +81,15 @@ class ConstantFormation(Formation):
         z = np.zeros_like(self.position_m)
         return Kinematics(self.position_m, z, z, self.attitude_rad, z, z)
 
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        cached = self.__dict__.get("_cached")
+        if cached is None:
+            cached = self.kinematics(0.0).offsets()
+            for arr in cached:
+                arr.setflags(write=False)
+            object.__setattr__(self, "_cached", cached)
+        return cached
+
 
 @dataclass(frozen=True)
 class RotatingPolygon(Formation):
@@ -117,12 +126,14 @@ class RotatingPolygon(Formation):
 
     def kinematics(self, t_s: float) -> Kinematics:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
-        ang = w * t_s + self.phase0_rad + 2.0 * np.pi * np.arange(n) / n
+        ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
         s, c = np.sin(ang), np.cos(ang)
-        zeros = np.zeros(n)
-        p = np.stack([R * s, R * c, np.full(n, self.altitude_m)], axis=1)
-        p_dot = np.stack([R * w * c, -R * w * s, zeros], axis=1)
-        p_ddot = np.stack([-R * w * w * s, -R * w * w * c, zeros], axis=1)
+        p = np.empty((n, 3))
+        p_dot = np.zeros((n, 3))
+        p_ddot = np.zeros((n, 3))
+        p[:, 0], p[:, 1], p[:, 2] = R * s, R * c, self.altitude_m
+        p_dot[:, 0], p_dot[:, 1] = R * w * c, -R * w * s
+        p_ddot[:, 0], p_ddot[:, 1] = -R * w * w * s, -R * w * w * c
         z3 = np.zeros((n, 3))
         return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
 
@@ -187,48 +198,81 @@ def quintic_blend(tau: float) -> tuple[float, float, float]:
 
 
 @dataclass(frozen=True)
-class EntryBlend(Formation):
-    """Reference shaping for formation entry: each agent's offset moves from where it starts
-    (``start`` position and attitude offsets, e.g. resting on the ground) to the target formation by
-    a quintic blend over [t0_s, t0_s + duration_s]; afterwards it equals the target exactly.
+class Blend(Formation):
+    """From one formation to another by a quintic blend over [t0_s, t0_s + duration_s]:
 
-        p(t) = start_p + s(t) (p_target(t) - start_p),   eta likewise,
+        p(t) = (1 - s(t)) p_from(t) + s(t) p_to(t),   eta likewise,
 
-    differentiated with the product rule, so (76) still holds. At t0 the offset equals the start, so
-    a swarm that starts where it is asked to be starts with zero formation error."""
+    differentiated with the product rule, so (76) holds throughout. Before t0 it is ``source``,
+    after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
+    exactly where and how fast that source is."""
 
+    source: Formation
     target: Formation
-    start_position_m: np.ndarray
-    start_attitude_rad: np.ndarray
     t0_s: float
     duration_s: float
 
     def __post_init__(self) -> None:
-        n = self.target.n_agents
-        object.__setattr__(self, "start_position_m", _as_agents("start position", self.start_position_m, n))
-        object.__setattr__(self, "start_attitude_rad", _as_agents("start attitude", self.start_attitude_rad, n))
+        if self.source.n_agents != self.target.n_agents:
+            raise ParameterError("a blend needs formations of the same number of agents")
         if not (np.isfinite(self.duration_s) and self.duration_s > 0 and np.isfinite(self.t0_s)):
-            raise ParameterError(f"entry blend duration must be a positive number of seconds, got {self.duration_s!r}")
+            raise ParameterError(f"blend duration must be a positive number of seconds, got {self.duration_s!r}")
 
     @property
     def n_agents(self) -> int:
         return self.target.n_agents
 
+    @property
+    def end_s(self) -> float:
+        return self.t0_s + self.duration_s
+
     def kinematics(self, t_s: float) -> Kinematics:
-        k = self.target.kinematics(t_s)
         T = self.duration_s
         s, ds, dds = quintic_blend((t_s - self.t0_s) / T)
         if s == 1.0:
-            return k
+            return self.target.kinematics(t_s)
+        a = self.source.kinematics(t_s)
+        if s == 0.0:
+            return a
+        b = self.target.kinematics(t_s)
         ds, dds = ds / T, dds / (T * T)
 
-        def blend(x0, x, xd, xdd):
-            d = x - x0
-            return x0 + s * d, ds * d + s * xd, dds * d + 2.0 * ds * xd + s * xdd
+        def mix(xa, xa_d, xa_dd, xb, xb_d, xb_dd):
+            d, d_d, d_dd = xb - xa, xb_d - xa_d, xb_dd - xa_dd
+            return xa + s * d, xa_d + s * d_d + ds * d, xa_dd + s * d_dd + 2.0 * ds * d_d + dds * d
 
-        p, pd, pdd = blend(self.start_position_m, k.p, k.p_dot, k.p_ddot)
-        e, ed, edd = blend(self.start_attitude_rad, k.eta, k.eta_dot, k.eta_ddot)
+        p, pd, pdd = mix(a.p, a.p_dot, a.p_ddot, b.p, b.p_dot, b.p_ddot)
+        e, ed, edd = mix(a.eta, a.eta_dot, a.eta_ddot, b.eta, b.eta_dot, b.eta_ddot)
         return Kinematics(p, pd, pdd, e, ed, edd)
+
+
+def EntryBlend(target: Formation, start_position_m, start_attitude_rad, t0_s: float, duration_s: float) -> Blend:
+    """Reference shaping for formation entry: each agent's offset moves from where it rests
+    (``start`` position and attitude offsets, e.g. on the ground) into the target formation by a
+    quintic blend over [t0_s, t0_s + duration_s]. At t0 the offset equals the start, so a swarm that
+    starts where it is asked to be starts with zero formation error."""
+    n = target.n_agents
+    start = ConstantFormation(_as_agents("start position", start_position_m, n),
+                              _as_agents("start attitude", start_attitude_rad, n))
+    return Blend(start, target, t0_s, duration_s)
+
+
+@dataclass(frozen=True)
+class RelativeTo(Formation):
+    """An absolute trajectory (e.g. a vehicle braking to a hold) written as offsets from a moving
+    leader: p - p0(t), eta - eta0(t), derivatives likewise. ``leader`` is a one-agent formation."""
+
+    absolute: Formation
+    leader: Formation
+
+    @property
+    def n_agents(self) -> int:
+        return self.absolute.n_agents
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        a, b = self.absolute.kinematics(t_s), self.leader.kinematics(t_s)
+        return Kinematics(a.p - b.p, a.p_dot - b.p_dot, a.p_ddot - b.p_ddot,
+                          a.eta - b.eta, a.eta_dot - b.eta_dot, a.eta_ddot - b.eta_ddot)
 
 
 @dataclass(frozen=True)

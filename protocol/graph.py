@@ -92,14 +92,7 @@ class Topology:
 
     def reachable_from_leader(self) -> np.ndarray:
         """Boolean mask of agents with a directed path from the leader."""
-        reached = self.pinning > 0
-        frontier = reached.copy()
-        while frontier.any():
-            # i is reached if it listens to a reached j.
-            new = (self.adjacency[:, frontier] > 0).any(axis=1) & ~reached
-            reached |= new
-            frontier = new
-        return reached
+        return reachable_within(self, np.ones(self.n_agents, dtype=bool))
 
     def has_spanning_tree(self) -> bool:
         """True if some agent reaches every agent along directed edges (ignoring the leader)."""
@@ -197,3 +190,17 @@ def triangles(n: int) -> Topology:
 FAMILIES = {"two-chain": two_chain, "triangles": triangles, "reverse-two-chain": reverse_two_chain}
 """Topology families defined for any number of agents; every agent hears two others (or the leader)
 when N >= 3, so removing any one agent leaves Assumption 1 intact in the two chains."""
+
+
+def reachable_within(topology: Topology, present: np.ndarray) -> np.ndarray:
+    """Agents with a directed path from the leader through present agents only (absent agents
+    neither relay nor count). ``present`` is a boolean mask (N,)."""
+    present = np.asarray(present, dtype=bool)
+    A = topology.adjacency * present[None, :] * present[:, None]
+    reached = (topology.pinning > 0) & present
+    frontier = reached.copy()
+    while frontier.any():
+        new = (A[:, frontier] > 0).any(axis=1) & ~reached & present
+        reached |= new
+        frontier = new
+    return reached

@@ -176,21 +176,15 @@ class RFL:
         the commanded specific thrust in the earth frame).
 
         M(x) = blockdiag(Psi, R_b2e) G with G constant, so M^-1 t = G^-1 [W t_eta; R^T t_lambda],
-        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v)`` (tested)."""
-        af = self.airframe
-        eta = x_r[..., XR_EULER].copy()
-        eta[..., 1] = np.clip(eta[..., 1], -max_pitch_rad, max_pitch_rad)
-        eta_dot = x_r[..., XR_EULER_RATE]
-        W = body_rate_matrix(eta)
-        R = rotation_body_to_earth(eta)
-        omega = (W @ eta_dot[..., None])[..., 0]
-        y_ddot = x_r @ self.L.T + v @ self.M0.T
-        # Body angular acceleration asked: omega_dot = W (eta_ddot - Psi_dot omega) and the body
-        # must also overcome -omega x I omega; body specific force asked: R^T (lambda_ddot + g e_z).
-        Psi_dot = euler_rate_matrix_dot(eta, eta_dot)
-        gyro = _cross(omega, omega @ self.inertia.T) @ self.inertia_inv.T
-        wdot = (W @ (y_ddot[..., 0:3] - (Psi_dot @ omega[..., None])[..., 0])[..., None])[..., 0] + gyro
-        thrust_e = y_ddot[..., 3:6].copy()
-        thrust_e[..., 2] += af.gravity_m_s2
-        force_b = (np.swapaxes(R, -1, -2) @ thrust_e[..., None])[..., 0]
-        return np.concatenate([force_b, wdot], axis=-1) @ self.G_inv.T, y_ddot
+        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v)`` (tested). Compiled
+        (``kernels.rfl_xr_row``): it runs on every tick of every drone."""
+        from . import kernels
+
+        xr2 = np.ascontiguousarray(np.asarray(x_r, dtype=float).reshape(-1, 12))
+        v2 = np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float), x_r.shape[:-1] + (6,)).reshape(-1, 6))
+        u = np.empty((xr2.shape[0], 6))
+        yddot = np.empty((xr2.shape[0], 6))
+        kernels.rfl_xr(xr2, v2, self.L, self.M0, self.inertia, self.inertia_inv, self.G_inv,
+                       self.airframe.gravity_m_s2, max_pitch_rad, u, yddot)
+        shape = x_r.shape[:-1] + (6,)
+        return u.reshape(shape), yddot.reshape(shape)

@@ -11,18 +11,15 @@ import asyncio
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
-
 from triswarm.protocol.frames import LocalProjection
 
-from .server import SitlServer, write_json_atomically
+from .server import SitlServer
 from .swarm import DEFAULT_HOME, SitlSwarm
 
 
 @dataclass(frozen=True)
 class SitlOptions:
     n: int
-    manifest: Path
     home: tuple[float, float, float] = DEFAULT_HOME
     speedup: float = 1.0
     rate_hz: float = 100.0
@@ -32,7 +29,6 @@ class SitlOptions:
     bind: str = "127.0.0.1"
     spacing_m: float = 2.5
     seed: int = 0
-    stats: Path | None = None
     duration_s: float | None = None
     """Stop by itself after this much simulated time (tests, benchmarks)."""
 
@@ -50,7 +46,8 @@ def parse_home(text: str) -> tuple[float, float, float]:
 
 
 async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = None) -> dict:
-    """Open every link, write the manifest, fly until a signal (or duration); return the stats."""
+    """Open every link, hand the manifest to ``on_ready``, fly until a signal (or duration);
+    return the stats."""
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     if not (opts.rate_hz >= 0 and opts.rate_hz <= 1000):
@@ -67,10 +64,8 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
         loop.add_signal_handler(sig, stop.set)
     try:
         await server.open()
-        manifest = server.manifest()
-        write_json_atomically(opts.manifest, manifest)
         if on_ready is not None:
-            on_ready(manifest)
+            on_ready(server.manifest())
         if opts.duration_s is not None:
             loop.call_later(opts.duration_s / opts.speedup, stop.set)
         await server.run(stop)
@@ -78,7 +73,4 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         server.close()
-    stats = server.stats()
-    if opts.stats is not None:
-        write_json_atomically(opts.stats, stats)
-    return stats
+    return server.stats()

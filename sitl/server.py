@@ -10,14 +10,13 @@ messages one link owes at one physics step go out in one datagram.
 from __future__ import annotations
 
 import asyncio
+import gc
 import heapq
-import json
 import os
 import socket
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from triswarm.protocol import frames
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
@@ -28,6 +27,7 @@ from .swarm import SitlSwarm
 PEER_TIMEOUT_S = 5.0
 MAX_PEERS_PER_LINK = 8
 MAX_BURST_STEPS = 200
+FINE_WAIT_S = 0.002
 MAX_DATAGRAMS_PER_WAKEUP = 256  # drain a flood in slices so the physics keeps its clock
 RECV_BUFFER_BYTES = 4 << 20
 
@@ -255,7 +255,15 @@ class SitlServer:
         rate = self.swarm.physics_hz * self.speedup  # physics steps per wall second
         self.swarm.step()  # warm up (compiled kernels load on first use) before the clock starts
         self._send_due()
+        # The ~10^5 long-lived objects of the imports would make every full garbage collection a
+        # pause of tens of milliseconds (hundreds on a busy machine) in which no telemetry leaves:
+        # collect once now and keep them out of later collections.
+        gc.collect()
+        gc.freeze()
         self.wall_start = loop.time()
+        boot = time.time() - self.swarm.time_s  # SYSTEM_TIME = the wall clock at start, then sim time
+        for fc in self.swarm.fcs:
+            fc.boot_unix_s = boot
         start_steps = self.swarm.steps
         while not stop.is_set():
             now = loop.time()
@@ -273,7 +281,15 @@ class SitlServer:
                         if fc.outbox:
                             self._flush_outbox(i)
             next_wall = self.wall_start + (self.swarm.steps - start_steps + 1) / rate
-            await asyncio.sleep(max(0.0, next_wall - loop.time()))
+            # asyncio's timers have millisecond resolution (epoll): wait coarsely while there is
+            # time, serving I/O, then sleep the last stretch precisely so telemetry leaves on time.
+            wait = next_wall - loop.time()
+            if wait > FINE_WAIT_S:
+                await asyncio.sleep(wait - FINE_WAIT_S)
+            await asyncio.sleep(0)
+            wait = next_wall - loop.time()
+            if wait > 0:
+                time.sleep(wait)
         self.wall_elapsed = loop.time() - self.wall_start
 
     def stats(self) -> dict:
@@ -300,16 +316,3 @@ class SitlServer:
                               for k, v in sorted(self.sent.items())},
             "vehicles": vehicles,
         }
-
-
-def write_json_atomically(path: Path, data: dict) -> None:
-    """Write, fsync, rename: a reader sees the old file or the new one, never half of one."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with tmp.open("w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse
 
-from triswarm.protocol.agent import protocol_input
+from triswarm.protocol.agent import protocol_input, reference_at
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import Plan
@@ -162,15 +162,10 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
             y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))
         # One tick of every agent, as a companion runs it (estimates refer to t + lead).
         xhat = ctrl.observe(y)
-        t_p = t + lead
-        h, _ = offsets.offsets(t_p)
-        x0, _ = plan.leader_state(t_p)
-        xi = xhat - h
-        topo = plan.schedule.at(t_p)
-        h_mid, h_mid_dot = offsets.offsets(t_p + 0.5 * dt)
-        x0_mid, x0_mid_dot = plan.leader_state(t_p + 0.5 * dt)
-        gamma = design.gamma(h_mid + x0_mid, h_mid_dot + x0_mid_dot)
-        v = protocol_input(design, xi, adjacency[topo.name] @ xi, topo.in_degree, topo.pinning, x0, gamma)
+        ref = reference_at(design, offsets.offsets, plan.leader_state, t, lead, dt)
+        xi = xhat - ref.h
+        topo = plan.schedule.at(ref.t_p)
+        v = protocol_input(design, xi, adjacency[topo.name] @ xi, topo.in_degree, topo.pinning, ref.x0, ref.gamma)
         act = ctrl.actuate(v)
         plant.command(act.omega_rad_s, act.alpha_rad)
         plant.advance(sub)

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from triswarm.protocol import model
-from triswarm.protocol.agent import protocol_input
+from triswarm.protocol.agent import protocol_input, reference_at
 from triswarm.protocol.airframe import TABLE_1, Airframe
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.design import DesignWeights, design
@@ -29,6 +29,12 @@ from .fc import FlightController, Snapshot
 from .physics import QUAT, Plant, quaternion_from_euler
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
+_ORIGIN = np.zeros(12)
+
+
+def _NO_LEADER(t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The autopilot's references are absolute: a leader at the local origin, at rest."""
+    return _ORIGIN, _ORIGIN
 DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
 
 
@@ -199,15 +205,12 @@ class SitlSwarm:
         s = self.sensor_rows()
         y = np.concatenate([s.euler_rad, s.position_m], axis=1)
         xhat = self.inner.observe(y)
-        t_p = now + self.inner.lead_s
-        h = xhat.copy()
+        h = xhat.copy()  # vehicles not in an internal mode: xi = 0, their commands are not used
         gamma = np.zeros((self.n, 6))
         for i in rows:
-            ref = self.inner_ref[i]
-            hi, _ = ref.offsets(t_p)
-            hm, hdm = ref.offsets(t_p + 0.5 * self.control_dt_s)
-            h[i] = hi[0]
-            gamma[i] = self._design.gamma(hm, hdm)[0]
+            ref = reference_at(self._design, self.inner_ref[i].offsets, _NO_LEADER, now, self.inner.lead_s,
+                               self.control_dt_s)
+            h[i], gamma[i] = ref.h[0], ref.gamma[0]
         zero = np.zeros(self.n)
         v = protocol_input(self._design, xhat - h, np.zeros_like(h), zero, np.ones(self.n), np.zeros(12), gamma)
         act = self.inner.actuate(v)

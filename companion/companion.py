@@ -1,0 +1,702 @@
+"""The companion: one drone's formation controller between its flight controller and its neighbours.
+
+One asyncio loop. Every complete telemetry sample from the flight controller (ATTITUDE and
+LOCAL_POSITION_NED with the same timestamp, at ``rate_hz``) drives one tick:
+
+    1. observe y and predict the state to t_p = t + servo delay (the same FormationController
+       as the in-process simulation);
+    2. publish xi_i = xhat_i - h_i(t_p) on Zenoh;
+    3. wait (at most ``NB_WAIT_MS``) for the in-neighbours' estimates for the same t_p;
+    4. check that a path from the leader remains through the agents that are alive, flying and
+       fresh; if not, hold position (and say so) until one returns;
+    5. protocol (72) with the neighbours it has, RFL (49), SET_ACTUATOR_CONTROL_TARGET.
+
+Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import gc
+from collections import deque
+import json
+import logging
+import math
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from triswarm.protocol import model
+from triswarm.protocol.agent import protocol_input, reference_at
+from triswarm.protocol.codec import AgentStatus, plan_id
+from triswarm.protocol.controller import FormationController
+from triswarm.protocol.formation import Blend, QuinticTransfer, RelativeTo
+from triswarm.protocol.graph import reachable_within
+from triswarm.protocol.mavlink import (COMP_ONBOARD, attitude_to_paper, encode_actuators, local_ned_to_paper,
+                                       mavlink, rates_to_paper)
+from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
+
+from .bus import Bus, default_config, tune
+from .health import LoopHealth
+from .links import MavLink, Router
+from .state import Mission, StateStore
+
+log = logging.getLogger("triswarm.companion")
+
+ARM_LEAD_S = 2.0
+START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
+IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
+HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+             mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
+             mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
+
+
+class Phase(enum.Enum):
+    IDLE = "idle"            # no plan running
+    SCHEDULED = "scheduled"  # waiting for the common start time (armed shortly before)
+    FLYING = "flying"        # in formation (or entering / rejoining it)
+    HOLDING = "holding"      # no path to the leader: holding position
+
+
+PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3}
+
+
+@dataclass(frozen=True)
+class CompanionOptions:
+    agent: int
+    fc_url: str
+    gcs_url: str
+    plan_path: Path | None = None
+    autostart: bool = False
+    start_at_unix_s: float | None = None
+    zenoh_config: Path | None = None
+    zenoh_listen: tuple[str, ...] = ()
+    zenoh_connect: tuple[str, ...] = ()
+    zenoh_mode: str = "peer"
+    zenoh_base_port: int = 17447
+    rate_hz: float = 200.0
+    state_dir: Path | None = None
+    swarm: str | None = None
+    stats_path: Path | None = None
+
+
+@dataclass
+class ParamSpec:
+    default: float
+    lo: float
+    hi: float
+    read_only: bool = False
+
+
+def load_plan_file(path: Path) -> Plan:
+    try:
+        spec = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PlanError(f"{path}: no such plan file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise PlanError(f"{path}: not valid TOML ({exc})") from None
+    return plan_from_dict(spec, str(path))
+
+
+@dataclass
+class Sample:
+    t_rx: float          # local monotonic time the datagram arrived
+    boot_ms: int         # flight controller time of the sample
+    eta: np.ndarray      # paper frame
+    rates: np.ndarray
+    position: np.ndarray
+    velocity_e: np.ndarray
+
+
+@dataclass
+class FcState:
+    heard: bool = False
+    armed: bool = False
+    mode: int = 0
+    landed: bool = True
+    clock_offset_s: float | None = None  # unix time - boot time (from SYSTEM_TIME)
+    max_rpm: float | None = None
+    servo_deg: float | None = None
+    att: tuple | None = None             # (boot_ms, eta, rates)
+    pending: dict = field(default_factory=dict)
+
+
+class Companion:
+    def __init__(self, opts: CompanionOptions) -> None:
+        self.opts = opts
+        self.agent = opts.agent
+        self.store = StateStore(opts.state_dir)
+        self.fc = FcState()
+        self.health = LoopHealth(1.0 / opts.rate_hz)
+        self.params = {
+            "CTRL_RATE_HZ": ParamSpec(opts.rate_hz, 1.0, 2000.0, read_only=True),
+            "NB_TIMEOUT_S": ParamSpec(0.2, 0.01, 10.0),
+            "NB_WAIT_MS": ParamSpec(1.0, 0.0, 4.0),
+            "REJOIN_S": ParamSpec(6.0, 1.0, 60.0),
+            "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),
+            "POS_BOUND_M": ParamSpec(0.10, 0.0, 100.0),
+            "ATT_BOUND_RAD": ParamSpec(0.02, 0.0, 3.2),
+        }
+        self.values = {k: p.default for k, p in self.params.items()}
+        self.phase = Phase.IDLE
+        self.mission: Mission | None = None
+        self.plan: Plan | None = None
+        self._queue: deque[Sample] = deque(maxlen=50)
+        self._gcs_last: dict[int, float] = {}
+        self._errors = 0
+        self._flying_since = -math.inf
+        self._t_p = -math.inf
+
+    # -- plan ---------------------------------------------------------------------------------
+
+    def load_mission(self) -> None:
+        """A saved mission (resumed after a restart) wins over a plan file with the same plan."""
+        saved = self.store.load()
+        if self.store.problem:
+            log.warning(self.store.problem)
+        plan_file = load_plan_file(self.opts.plan_path) if self.opts.plan_path else None
+        if saved is not None and saved.agent == self.agent and (plan_file is None or plan_id(plan_file.spec) == saved.plan_id):
+            self.mission = saved
+            self.plan = plan_from_dict(saved.plan_spec, f"{self.store.path}")
+        elif plan_file is not None:
+            self.plan = plan_file
+            self.mission = Mission(plan_file.spec, plan_id(plan_file.spec), self.agent)
+        if self.plan is not None and not 1 <= self.agent <= self.plan.n_agents:
+            raise PlanError(f"agent {self.agent} is not in plan {self.plan.name} ({self.plan.n_agents} drones)")
+        if self.plan is not None:
+            self.values["COUPLING_C"] = self.plan.design.c
+            self.params["COUPLING_C"] = ParamSpec(self.plan.design.c, 0.0, 1e9, read_only=True)
+
+    # -- run ----------------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> dict:
+        loop = asyncio.get_running_loop()
+        self.loop = loop
+        self.load_mission()
+        self.fc_link = MavLink("fc", self.opts.fc_url, self.agent, COMP_ONBOARD)
+        self.gcs_link = MavLink("gcs", self.opts.gcs_url, self.agent, COMP_ONBOARD)
+        self.links = [self.fc_link, self.gcs_link]
+        self.router = Router(self.agent, COMP_ONBOARD)
+        tasks: list[asyncio.Task] = []
+        try:
+            self.fc_link.open(loop, self._on_fc)
+            self.gcs_link.open(loop, self._on_gcs)
+            if self.plan is not None:
+                self._open_bus(loop)
+            self.fc_link.after_read = self._process_samples
+            tasks.append(asyncio.create_task(self._every_second()))
+            tasks.append(asyncio.create_task(self._mission_task()))
+            await stop.wait()
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            if hasattr(self, "bus"):
+                self.bus.close()
+            for link in self.links:
+                link.close()
+        return self.stats()
+
+    def _open_bus(self, loop) -> None:
+        plan = self.plan
+        i = self.agent - 1
+        listen_to = frozenset(int(j) + 1 for t in plan.schedule.topologies for j in t.in_neighbours(i))
+        swarm = self.opts.swarm or plan.name
+        self.bus = Bus(swarm, self.agent, self.mission.plan_id, listen_to, plan.n_agents)
+        self.bus.open(self._zenoh_config(plan.n_agents), loop)
+        self._design = plan.design
+        self._in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in plan.schedule.topologies}
+        self._paths: dict[tuple, bool] = {}
+        self.ctrl = FormationController(self._design, 1, self.opts.rate_hz,
+                                        thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
+        omega, alpha = model.hover_trim(plan.airframe)
+        self._idle = (omega * IDLE_FRACTION, alpha)
+        self.bus.publish_status(AgentStatus.IDLE)
+
+    def _zenoh_config(self, n_agents: int):
+        import zenoh
+
+        o = self.opts
+        if o.zenoh_config is not None:
+            try:
+                return tune(zenoh.Config.from_file(str(o.zenoh_config)))
+            except Exception as exc:  # zenoh raises its own error type for a bad file
+                raise PlanError(f"{o.zenoh_config}: not a usable Zenoh configuration ({exc})") from None
+        if o.zenoh_listen or o.zenoh_connect:
+            from .bus import peer_config
+
+            return peer_config(list(o.zenoh_listen), list(o.zenoh_connect), o.zenoh_mode)
+        return default_config(self.agent, n_agents, o.zenoh_base_port)
+
+    # -- the flight controller ----------------------------------------------------------------
+
+    def _on_fc(self, link: MavLink, msgs: list, t_rx: float) -> None:
+        for msg in msgs:
+            self.router.learn(link, msg)
+            mine = self.router.for_me(msg)
+            src = (msg.get_srcSystem(), msg.get_srcComponent())
+            if src == (self.agent, mavlink.MAV_COMP_ID_AUTOPILOT1):
+                self._fc_message(msg, t_rx)
+            for dest in self.router.destinations(link, msg, self.links):
+                if dest is self.gcs_link and not self._gcs_rate_ok(msg):
+                    continue
+                dest.write(msg.get_msgbuf())
+            if mine and src[0] != self.agent:
+                self._handle_for_me(link, msg)
+
+    def _gcs_rate_ok(self, msg) -> bool:
+        """High-rate telemetry reaches the ground station at GCS_TLM_HZ at most."""
+        mid = msg.get_msgId()
+        if mid not in HIGH_RATE:
+            return True
+        rate = self.values["GCS_TLM_HZ"]
+        if rate <= 0:
+            return False
+        now = time.monotonic()
+        if now - self._gcs_last.get(mid, -math.inf) < 1.0 / rate:
+            return False
+        self._gcs_last[mid] = now
+        return True
+
+    def _fc_message(self, msg, t_rx: float) -> None:
+        fc = self.fc
+        t = msg.get_type()
+        if t == "HEARTBEAT":
+            fc.heard = True
+            fc.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            fc.mode = msg.custom_mode
+        elif t == "ATTITUDE":
+            fc.att = (msg.time_boot_ms, attitude_to_paper(msg.roll, msg.pitch, msg.yaw),
+                      rates_to_paper(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+        elif t == "LOCAL_POSITION_NED":
+            if fc.att is not None and fc.att[0] == msg.time_boot_ms:
+                self._sample(Sample(t_rx, msg.time_boot_ms, fc.att[1], fc.att[2],
+                                    local_ned_to_paper(msg.x, msg.y, msg.z), local_ned_to_paper(msg.vx, msg.vy, msg.vz)))
+        elif t == "SYSTEM_TIME":
+            if msg.time_unix_usec > 0:
+                fc.clock_offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+        elif t == "EXTENDED_SYS_STATE":
+            fc.landed = msg.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+        elif t == "COMMAND_ACK":
+            fut = fc.pending.pop(("ack", msg.command), None)
+            if fut is not None and not fut.done():
+                fut.set_result(msg.result)
+        elif t == "PARAM_VALUE":
+            fut = fc.pending.pop(("param", msg.param_id), None)
+            if fut is not None and not fut.done():
+                fut.set_result(msg.param_value)
+
+    async def _fc_request(self, key, send, timeout_s: float = 0.5, tries: int = 6):
+        for _ in range(tries):
+            fut = self.loop.create_future()
+            self.fc.pending[key] = fut
+            send()
+            try:
+                return await asyncio.wait_for(fut, timeout_s)
+            except asyncio.TimeoutError:
+                continue
+        raise TimeoutError(f"flight controller did not answer {key}")
+
+    async def fc_command(self, command: int, *params: float) -> int:
+        p = list(params) + [0.0] * (7 - len(params))
+        return await self._fc_request(("ack", command), lambda: self.fc_link.send(
+            mavlink.MAVLink_command_long_message(self.agent, 1, command, 0, *p)))
+
+    async def fc_param(self, name: str) -> float:
+        return await self._fc_request(("param", name), lambda: self.fc_link.send(
+            mavlink.MAVLink_param_request_read_message(self.agent, 1, name.encode(), -1)))
+
+    async def setup_fc(self) -> None:
+        """Wait for the flight controller, learn its actuator scaling, ask for the telemetry."""
+        while not self.fc.heard:
+            self.fc_link.send(self._heartbeat())
+            await asyncio.sleep(0.2)
+        self.fc.max_rpm = await self.fc_param("MOT_MAX_RPM")
+        self.fc.servo_deg = await self.fc_param("SERVO_LIM_DEG")
+        interval = 1e6 / self.opts.rate_hz
+        for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
+                           (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
+                           (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
+            await self.fc_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
+        await self.fc_command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)
+        while self.fc.clock_offset_s is None:
+            await asyncio.sleep(0.05)
+        # Set up and about to fly: keep the start-up objects out of every later garbage collection,
+        # which would otherwise stall the loop for tens of milliseconds at a time.
+        gc.collect()
+        gc.freeze()
+
+    def fc_unix(self, boot_ms: int) -> float:
+        """The flight controller's time of a sample, as Unix time (its SYSTEM_TIME clock)."""
+        off = self.fc.clock_offset_s
+        return time.time() if off is None else off + boot_ms / 1000.0
+
+    # -- the mission --------------------------------------------------------------------------
+
+    async def _mission_task(self) -> None:
+        try:
+            await self._mission()
+        except Exception as exc:  # the mission stops; the companion keeps routing and reporting
+            log.exception("mission stopped")
+            self.statustext(f"companion {self.agent}: mission stopped: {exc}"[:50], mavlink.MAV_SEVERITY_ERROR)
+
+    async def _mission(self) -> None:
+        await self.setup_fc()
+        announce = log.info
+        if self.mission is None:
+            announce(f"agent {self.agent}: no plan; waiting")
+            return
+        m = self.mission
+        now = time.time()
+        if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
+            self.statustext(f"companion {self.agent}: resuming plan after restart")
+            await self._resume()
+            return
+        if self.opts.autostart:
+            m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
+            m.phase = "scheduled"
+            self.store.save(m)
+            self.phase = Phase.SCHEDULED
+            self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
+            await asyncio.sleep(max(0.0, m.start_unix_s - ARM_LEAD_S - time.time()))
+            await self._arm()
+            await asyncio.sleep(max(0.0, m.start_unix_s - time.time()))
+            self._begin_entry(m.start_unix_s)
+
+    async def _arm(self) -> None:
+        result = await self.fc_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            self.statustext(f"companion {self.agent}: the flight controller refused to arm ({result})")
+            raise RuntimeError("arming refused")
+
+    def _current_state(self) -> np.ndarray | None:
+        s = getattr(self, "_last_sample", None)
+        if s is None:
+            return None
+        R = model.rotation_body_to_earth(s.eta)
+        return np.concatenate([R.T @ s.velocity_e, s.rates, s.eta, s.position])
+
+    def _begin_entry(self, t0_unix: float) -> None:
+        """Take off from where the drone rests and enter the formation (the plan's entry)."""
+        x = self._current_state()
+        self.ctrl.reset(x[None, :])
+        m = self.mission
+        m.phase = "flying"
+        self.store.save(m)
+        start = np.tile(x[9:12], (self.plan.n_agents, 1))
+        self.offsets = self.plan.entry_formation(start, t0_unix - m.start_unix_s).offsets
+        self._set_phase(Phase.FLYING, "")
+
+    async def _resume(self) -> None:
+        """After a restart: join the formation again from wherever the vehicle is."""
+        while self._current_state() is None:
+            await asyncio.sleep(0.05)
+        if not self.fc.armed or self.fc.landed:
+            if not self.fc.armed:
+                await self._arm()
+            t0 = self.fc_unix(self._last_sample.boot_ms) + 1.0
+            self._begin_entry(t0)
+            return
+        x = self._current_state()
+        self.ctrl.reset(x[None, :])
+        t_plan = self._plan_time(self._last_sample)
+        self._hold = self._braking(t_plan, x)
+        self._rejoin(t_plan)
+
+    def _braking(self, t: float, x: np.ndarray) -> QuinticTransfer:
+        """From state x (28-style paper state or x_r estimate rows as p, v, eta, eta_dot) at plan
+        time t to rest at its stopping point, level, for every row (absolute, local frame)."""
+        p0, v0, eta0, eta_dot0 = x[9:12], x[0:3], x[6:9], x[3:6]
+        T = max(2.0, float(np.linalg.norm(v0)) / 2.0)
+        n = self.plan.n_agents
+        tile = lambda a: np.tile(np.asarray(a, dtype=float), (n, 1))  # noqa: E731
+        return QuinticTransfer(tile(p0), tile(v0), tile(p0 + v0 * T / 2.0), tile(eta0), tile(eta_dot0),
+                               tile([0.0, 0.0, eta0[2]]), t, T)
+
+    def _rejoin(self, t_plan: float) -> None:
+        """Blend from the braking/held trajectory into the formation over REJOIN_S seconds: the
+        reference starts exactly where (and as fast as) the drone is."""
+        source = RelativeTo(self._hold, self.plan.leader)
+        self.offsets = Blend(source, self.plan.formation, t_plan, self.values["REJOIN_S"]).offsets
+        self._set_phase(Phase.FLYING, "")
+
+    def _set_phase(self, phase: Phase, reason: str) -> None:
+        if phase != self.phase:
+            if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
+                self._flying_since = time.monotonic()
+            self.phase = phase
+            status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(phase, AgentStatus.IDLE)
+            self.bus.publish_status(status, reason)
+            if phase == Phase.HOLDING:
+                self.statustext(f"companion {self.agent}: holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
+            elif phase == Phase.FLYING:
+                self.statustext(f"companion {self.agent}: in formation")
+
+    def _plan_time(self, s: Sample) -> float:
+        return self.fc_unix(s.boot_ms) - self.mission.start_unix_s
+
+    # -- the tick -----------------------------------------------------------------------------
+
+    def _sample(self, s: Sample) -> None:
+        prev = getattr(self, "_last_sample", None)
+        if prev is not None and s.t_rx - prev.t_rx > 0.05 and self.phase == Phase.FLYING:
+            log.info(f"telemetry gap {1e3 * (s.t_rx - prev.t_rx):.0f} ms (fc time {s.boot_ms - prev.boot_ms} ms)")
+        self._last_sample = s
+        self._queue.append(s)
+
+    def _process_samples(self) -> None:
+        """After the flight-controller link has read everything waiting: act on the newest
+        sample, right here in the reader (no task switch on the hot path). Samples the loop fell
+        behind on still update the estimate, as periods in which the flight controller kept the
+        last command (deadline misses)."""
+        if not self._queue:
+            return
+        backlog = list(self._queue)
+        self._queue.clear()
+        try:
+            if self.phase in (Phase.FLYING, Phase.HOLDING):
+                for old in backlog[:-1]:
+                    self.ctrl.hold_tick(np.concatenate([old.eta, old.position])[None, :])
+            if len(backlog) > 1:
+                self.health.skipped(len(backlog) - 1)
+            self._tick(backlog[-1])
+        except Exception:  # a bad tick costs one command, never the loop
+            self._errors += 1
+            if self._errors <= 3:
+                log.exception("tick failed")
+
+    def _tick(self, s: Sample) -> None:
+        if self.fc.max_rpm is None or self.plan is None:
+            return
+        self.bus.drain()
+        if self.phase in (Phase.IDLE, Phase.SCHEDULED):
+            if self.fc.armed and self.phase == Phase.SCHEDULED:
+                self._send_actuators(*self._idle, s.t_rx)
+            return
+        y = np.concatenate([s.eta, s.position])[None, :]
+        xhat = self.ctrl.observe(y)
+        t_plan = self._plan_time(s)
+        lead, dt = self.ctrl.lead_s, self.ctrl.dt_s
+        i = self.agent - 1
+        self._t_p = t_plan + lead
+        if self.phase == Phase.FLYING:
+            ref = reference_at(self._design, self.offsets, self.plan.leader_state, t_plan, lead, dt, rows=[i])
+            xi = xhat - ref.h
+            self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
+            topo = self.plan.schedule.at(ref.t_p)
+            inn = self._in_neighbours[topo.name]
+            self.bus.wait_for([j for j in inn if self._usable(j, check_fresh=False)], ref.t_p,
+                              0.5 * dt, self.values["NB_WAIT_MS"] / 1000.0)
+            present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
+            if not self._has_path(topo, present):
+                self._start_hold(t_plan, xhat[0], f"no path to the leader in {topo.name}")
+            else:
+                used = [j for j in inn if present[j - 1] and self.bus.neighbours[j].heard]
+                weights = topo.adjacency[i, [j - 1 for j in used]]
+                nsum = sum(w * self.bus.neighbours[j].xi for w, j in zip(weights, used)) if used else np.zeros(12)
+                now = time.time()
+                for j in used:
+                    self.health.neighbour_age[j].add(now - self.bus.neighbours[j].stamp_s)
+                v = protocol_input(self._design, xi, np.asarray(nsum)[None, :], np.array([weights.sum()]),
+                                   topo.pinning[i:i + 1], ref.x0, ref.gamma)
+                if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
+                    formation, _ = self.plan.reference(ref.t_p)
+                    self.health.formation_error.add(float(np.linalg.norm(xhat[0, 9:12] - formation[i, 9:12])))
+                self._actuate(v, s)
+                return
+        # holding: pinned to its own absolute reference, no neighbours
+        ref = reference_at(self._design, self._hold.offsets, _no_leader, t_plan, lead, dt, rows=[i])
+        self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
+        present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
+        if self._has_path(self.plan.schedule.at(ref.t_p), present):
+            self._rejoin(t_plan)
+        v = protocol_input(self._design, xhat - ref.h, np.zeros((1, 12)), np.zeros(1), np.ones(1), ref.x0, ref.gamma)
+        self._actuate(v, s)
+
+    def _has_path(self, topo, present: tuple[bool, ...]) -> bool:
+        """Whether this agent has a path from the leader through the present agents (cached: the
+        answer only changes when an agent comes or goes)."""
+        key = (topo.name, present)
+        found = self._paths.get(key)
+        if found is None:
+            found = bool(reachable_within(topo, np.array(present))[self.agent - 1])
+            self._paths[key] = found
+        return found
+
+    def _usable(self, j: int, check_fresh: bool = True) -> bool:
+        """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
+        with an estimate younger than NB_TIMEOUT_S."""
+        if j == self.agent:
+            return True
+        bus = self.bus
+        if j not in bus.alive:
+            return False
+        starting = time.monotonic() - self._flying_since < START_GRACE_S  # the swarm takes off together
+        status = bus.statuses.get(j, AgentStatus.FLYING)
+        if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):
+            return False
+        nb = bus.neighbours.get(j)
+        if nb is None:
+            return True  # not one of ours to listen to: liveliness and status decide
+        if not nb.heard:
+            return starting
+        if nb.status != AgentStatus.FLYING:
+            return False
+        # stale in plan time (the flight controllers' clock): a pause of the whole swarm is not a loss
+        return not check_fresh or self._t_p - nb.t_plan_s <= self.values["NB_TIMEOUT_S"]
+
+    def _start_hold(self, t_plan: float, xhat: np.ndarray, reason: str) -> None:
+        """xhat: the estimate x_r predicted to t_plan + lead ([lambda_dot, eta_dot, eta, lambda])."""
+        self._hold = self._braking(t_plan + self.ctrl.lead_s, xhat)
+        absent = {j: self._why_absent(j) for j in range(1, self.plan.n_agents + 1) if not self._usable(j)}
+        log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
+        self._set_phase(Phase.HOLDING, reason)
+
+    def _why_absent(self, j: int) -> str:
+        bus = self.bus
+        if j not in bus.alive:
+            return "no liveliness"
+        status = bus.statuses.get(j)
+        nb = bus.neighbours.get(j)
+        if nb is not None and nb.heard:
+            return (f"status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms old, "
+                    f"t_plan {nb.t_plan_s:.3f} (received {1e3 * (time.time() - nb.received_at):.0f} ms ago)")
+        return f"status {status.name if status else '?'}, no estimate"
+
+    def _actuate(self, v: np.ndarray, s: Sample) -> None:
+        act = self.ctrl.actuate(v)
+        self._send_actuators(act.omega_rad_s[0], act.alpha_rad[0], s.t_rx)
+        self.health.telemetry_age.add(time.time() - self.fc_unix(s.boot_ms))
+
+    def _send_actuators(self, omega, alpha, t_rx: float) -> None:
+        controls = encode_actuators(omega, alpha, self.fc.max_rpm * math.pi / 30.0, math.radians(self.fc.servo_deg))
+        frame = mavlink.MAVLink_set_actuator_control_target_message(
+            int(time.time() * 1e6), 0, self.agent, 1, controls).pack(self.fc_link.codec)
+        self.health.tick(t_rx, time.monotonic())  # the command leaves now (loopback may preempt us in the call)
+        self.fc_link.write(frame)
+
+    # -- the ground station and component 191 -------------------------------------------------
+
+    def _on_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
+        for msg in msgs:
+            self.router.learn(link, msg)
+            for dest in self.router.destinations(link, msg, self.links):
+                dest.write(msg.get_msgbuf())
+            if self.router.for_me(msg):
+                self._handle_for_me(link, msg)
+
+    def _handle_for_me(self, link: MavLink, msg) -> None:
+        t = msg.get_type()
+        if t == "PARAM_REQUEST_LIST":
+            for k in range(len(self.values)):
+                link.send(self._param_value(k))
+        elif t == "PARAM_REQUEST_READ":
+            names = list(self.values)
+            name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+            k = msg.param_index if msg.param_index >= 0 else (names.index(name) if name in names else -1)
+            if 0 <= k < len(names):
+                link.send(self._param_value(k))
+        elif t == "PARAM_SET":
+            self._param_set(link, msg)
+        elif t in ("COMMAND_LONG", "COMMAND_INT"):
+            self._command(link, msg)
+
+    def _param_value(self, k: int):
+        name = list(self.values)[k]
+        return mavlink.MAVLink_param_value_message(name.encode(), float(self.values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
+                                                   len(self.values), k)
+
+    def _param_set(self, link: MavLink, msg) -> None:
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+        spec = self.params.get(name)
+        if spec is None:
+            self.statustext(f"companion {self.agent}: unknown parameter {name}")
+            return
+        value = float(msg.param_value)
+        if spec.read_only:
+            self.statustext(f"companion {self.agent}: {name} is read-only")
+        elif not (math.isfinite(value) and spec.lo <= value <= spec.hi):
+            self.statustext(f"companion {self.agent}: {name} must be within [{spec.lo:g}, {spec.hi:g}]")
+        else:
+            self.values[name] = value
+        link.send(self._param_value(list(self.values).index(name)))
+
+    def _command(self, link: MavLink, msg) -> None:
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            result = mavlink.MAV_RESULT_ACCEPTED
+            link.send(self._heartbeat())
+        else:
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+        link.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                                      msg.get_srcComponent()))
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        log.info(text)
+        self.gcs_link.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
+
+    def _heartbeat(self):
+        status = {Phase.HOLDING: mavlink.MAV_STATE_CRITICAL, Phase.FLYING: mavlink.MAV_STATE_ACTIVE}.get(
+            self.phase, mavlink.MAV_STATE_STANDBY)
+        return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                                                 mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PHASE_MODE[self.phase], status, 3)
+
+    async def _every_second(self) -> None:
+        while True:
+            hb = self._heartbeat()
+            for link in self.links:
+                link.send(hb)
+            if hasattr(self, "bus"):
+                report = self.health_report()
+                self.bus.publish_health(report)
+                status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(
+                    self.phase, AgentStatus.IDLE)
+                self.bus.publish_status(status)
+                boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
+                for name, key in (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
+                                  ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"),
+                                  ("FORM_ERRM", "formation_error_m")):
+                    value = report.get(key)
+                    if value is not None:
+                        self.gcs_link.send(mavlink.MAVLink_named_value_float_message(boot_ms, name.encode(), float(value)))
+                for j, age in report["neighbour_age_ms"].items():
+                    if age is not None:
+                        self.gcs_link.send(mavlink.MAVLink_named_value_float_message(boot_ms, f"NB{j}_AGEMS".encode(), age))
+            await asyncio.sleep(1.0)
+
+    def health_report(self) -> dict:
+        now = time.time()
+        ages = {j: (now - nb.stamp_s if nb.heard else math.inf) for j, nb in self.bus.neighbours.items()}
+        report = self.health.report(ages)
+        report.update(agent=self.agent, phase=self.phase.value, alive=sorted(self.bus.alive),
+                      counters=dict(self.bus.counters), t=now)
+        return report
+
+    def stats(self) -> dict:
+        out = {"agent": self.agent, "phase": self.phase.value, "loop": self.health.summary(),
+               "tick_errors": self._errors,
+               "links": {lk.name: dict(lk.counters) for lk in self.links}}
+        if hasattr(self, "bus"):
+            out["zenoh"] = dict(self.bus.counters)
+        return out
+
+
+def _no_leader(t_s: float):
+    z = np.zeros(12)
+    return z, z
+
+
+def default_start_time(now: float) -> float:
+    """Companions started together agree without talking: the next multiple of 10 s at least 5 s ahead."""
+    return math.ceil((now + 5.0) / 10.0) * 10.0
+
+
+def write_stats(path: Path, stats: dict) -> None:
+    from .state import write_json_atomically
+
+    write_json_atomically(path, json.loads(json.dumps(stats, default=float)))

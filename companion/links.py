@@ -1,0 +1,142 @@
+"""MAVLink links of a process (a pymavlink connection string each) and routing between them.
+
+pymavlink provides the transports (``udpin:``, ``udpout:``, ``tcp:``, serial ports); frames are
+parsed and packed by the project's own codec (``protocol.mavlink``, MAVLink 2), so nothing depends on
+pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import Counter
+from collections.abc import Callable
+
+from pymavlink import mavutil
+
+from triswarm.protocol.mavlink import new_codec, reset_parser
+
+MAX_READS_PER_WAKEUP = 64
+
+
+class MavLink:
+    """One MAVLink link. ``on_receive(link, messages, t_rx_monotonic)`` gets every parsed batch."""
+
+    def __init__(self, name: str, url: str, sysid: int, compid: int) -> None:
+        self.name, self.url = name, url
+        self.codec = new_codec(sysid, compid)
+        self.parser = new_codec(sysid, compid)
+        self.conn = None
+        self.counters: Counter[str] = Counter()
+        self._on_receive: Callable | None = None
+        self.after_read: Callable[[], None] | None = None
+        """Called once everything waiting has been read (e.g. to act on the newest sample only)."""
+        self._datagrams = False
+
+    def open(self, loop: asyncio.AbstractEventLoop, on_receive: Callable) -> None:
+        try:
+            self.conn = mavutil.mavlink_connection(self.url, source_system=self.codec.srcSystem,
+                                                   source_component=self.codec.srcComponent)
+        except (OSError, ValueError) as exc:
+            raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
+        self._datagrams = isinstance(self.conn, mavutil.mavudp)
+        self._on_receive = on_receive
+        loop.add_reader(self.conn.fd, self._readable)
+
+    def close(self) -> None:
+        if self.conn is not None:
+            try:
+                asyncio.get_event_loop().remove_reader(self.conn.fd)
+            except (RuntimeError, ValueError):
+                pass
+            self.conn.close()
+            self.conn = None
+
+    def _readable(self) -> None:
+        try:
+            self._read_all()
+        finally:
+            if self.after_read is not None:
+                self.after_read()
+
+    def _read_all(self) -> None:
+        for _ in range(MAX_READS_PER_WAKEUP):
+            try:
+                data = self.conn.recv(65535)
+            except OSError:
+                self.counters["read_errors"] += 1
+                return
+            if not data:
+                return
+            t_rx = time.monotonic()
+            if isinstance(data, str):
+                data = data.encode("latin-1")
+            if self._datagrams:
+                reset_parser(self.parser)  # whole frames per datagram; leftovers are garbage
+            try:
+                msgs = self.parser.parse_buffer(data) or []
+            except Exception:  # garbage loses itself, never the link
+                self.counters["drop_unparseable"] += 1
+                reset_parser(self.parser)
+                continue
+            good = []
+            for m in msgs:
+                if m.get_type() == "BAD_DATA":
+                    self.counters["drop_bad_data"] += 1
+                else:
+                    good.append(m)
+            self.counters["rx"] += len(good)
+            if good:
+                self._on_receive(self, good, t_rx)
+
+    def send(self, msg) -> None:
+        """Pack a pymavlink message object as this process (sysid/compid of the link) and send it."""
+        self.write(msg.pack(self.codec))
+
+    def write(self, data: bytes) -> None:
+        """Send raw frames (e.g. forwarded ones, unchanged)."""
+        if self.conn is None:
+            return
+        try:
+            self.conn.write(data)
+            self.counters["tx"] += 1
+        except OSError:
+            self.counters["write_errors"] += 1
+
+
+class Router:
+    """MAVLink routing (https://mavlink.io/en/guide/routing.html) between this process's links:
+
+    * remember on which link each (system, component) was heard;
+    * a message is forwarded to every other link on which its target was heard, or to every other
+      link if it is a broadcast (no target, or target system 0), never back where it came from;
+      target component 0 means every component of the target system;
+    * a message addressed to this component is handled here and not forwarded; a broadcast is both.
+    """
+
+    def __init__(self, sysid: int, compid: int) -> None:
+        self.sysid, self.compid = sysid, compid
+        self.seen: dict[tuple[int, int], MavLink] = {}
+
+    def learn(self, link: MavLink, msg) -> None:
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if src != (self.sysid, self.compid):
+            self.seen[src] = link
+
+    def for_me(self, msg) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.sysid) and tc in (0, self.compid)
+
+    def destinations(self, origin: MavLink, msg, links: list[MavLink]) -> list[MavLink]:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        others = [lk for lk in links if lk is not origin]
+        if ts == 0:
+            return others
+        if ts == self.sysid and tc == self.compid:
+            return []
+        if tc == 0:
+            return [lk for lk in others if any(s == ts and link is lk for (s, _), link in self.seen.items())]
+        target = self.seen.get((ts, tc))
+        return [target] if target is not None and target is not origin else []

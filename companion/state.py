@@ -1,0 +1,60 @@
+"""What a companion keeps across a restart: its plan and where the mission is, written atomically."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+
+def write_json_atomically(path: Path, data: dict) -> None:
+    """Write, fsync, rename (and fsync the folder): a reader sees the old file or the new one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with tmp.open("w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@dataclass
+class Mission:
+    plan_spec: dict
+    plan_id: int
+    agent: int
+    start_unix_s: float | None = None
+    """When the plan (its take-off) starts, common to the swarm; None: not scheduled."""
+    phase: str = "idle"
+    """idle, scheduled or flying."""
+
+
+class StateStore:
+    """One JSON file in the state folder; None folder: keep nothing."""
+
+    def __init__(self, folder: Path | None) -> None:
+        self.path = None if folder is None else Path(folder) / "mission.json"
+        self.problem: str | None = None
+
+    def load(self) -> Mission | None:
+        """The saved mission, or None (and ``problem`` says why if the file was unusable)."""
+        if self.path is None or not self.path.exists():
+            return None
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+            return Mission(**data)
+        except (OSError, ValueError, TypeError) as exc:
+            self.problem = f"{self.path}: unusable saved mission ({exc.__class__.__name__}), starting without it"
+            return None
+
+    def save(self, mission: Mission) -> None:
+        if self.path is not None:
+            write_json_atomically(self.path, asdict(mission))

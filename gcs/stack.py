@@ -1,0 +1,144 @@
+"""Run the whole stack on one machine: `triswarm sitl up` and one `triswarm-companion` per drone, as
+real processes on loopback, and stop every one of them."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[int]:
+    """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count)."""
+    import random
+
+    def free(port: int) -> bool:
+        for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+            s = socket.socket(socket.AF_INET, kind)
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                return False
+            finally:
+                s.close()
+        return True
+
+    rng = random.Random()
+    for _ in range(tries):
+        if contiguous:
+            base = rng.randrange(20000, 60000 - count)
+            ports = list(range(base + 1, base + count + 1))
+        else:
+            ports = [rng.randrange(20000, 60000) for _ in range(count)]
+        if len(set(ports)) == count and all(free(p) for p in ports):
+            return ports
+    raise RuntimeError("no free ports found")
+
+
+@dataclass
+class Stack:
+    """SITL and companions for a plan. Use as a context manager."""
+
+    plan_path: Path
+    workdir: Path
+    n: int
+    start_delay_s: float = 8.0
+    rate_hz: float = 200.0
+    sitl_args: list[str] = field(default_factory=list)
+    companion_args: dict[int, list[str]] = field(default_factory=dict)
+    """Extra arguments per agent (e.g. Zenoh endpoints)."""
+    wrap: list[str] = field(default_factory=list)
+    """Prefix for every command (e.g. ip netns exec NAME)."""
+
+    def __post_init__(self) -> None:
+        self.workdir = Path(self.workdir)
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._logs: list = []
+
+    def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        log = (self.workdir / "logs" / f"{name}.log").open("a")
+        self._logs.append(log)
+        proc = subprocess.Popen(self.wrap + cmd, stdout=log, stderr=subprocess.STDOUT)
+        self.procs[name] = proc
+        return proc
+
+    def __enter__(self) -> "Stack":
+        for sub in ("logs", "state", "stats"):
+            (self.workdir / sub).mkdir(parents=True, exist_ok=True)
+        manifest_path = self.workdir / "manifest.json"
+        self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
+                             str(manifest_path), "--base-port", "0", "--stats", str(self.workdir / "stats" / "sitl.json"),
+                             "--quiet", *self.sitl_args])
+        deadline = time.monotonic() + 60.0
+        while not manifest_path.exists():
+            if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
+                self.__exit__(None, None, None)
+                raise RuntimeError(f"sitl did not start (see {self.workdir / 'logs' / 'sitl.log'})")
+            time.sleep(0.05)
+        self.manifest = json.loads(manifest_path.read_text())
+        self.gcs_ports = free_ports(self.n)
+        self.zenoh_base = free_ports(self.n, contiguous=True)[0] - 1
+        self.start_at = time.time() + self.start_delay_s
+        for i in range(1, self.n + 1):
+            self.start_companion(i)
+        return self
+
+    def companion_cmd(self, i: int) -> list[str]:
+        v = self.manifest["vehicles"][i - 1]
+        return [sys.executable, "-m", "triswarm.companion.cli", "--id", str(i),
+                "--fc", v["links"]["companion"]["pymavlink"], "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}",
+                "--plan", str(self.plan_path), "--autostart", "--start-at", f"{self.start_at:.3f}",
+                "--zenoh-base-port", str(self.zenoh_base), "--rate-hz", str(self.rate_hz),
+                "--state-dir", str(self.workdir / "state" / str(i)), "--stats", str(self.workdir / "stats" / f"{i}.json"),
+                *self.companion_args.get(i, [])]
+
+    def start_companion(self, i: int) -> None:
+        self._spawn(f"companion-{i}", self.companion_cmd(i))
+
+    def kill_companion(self, i: int, sig: int = signal.SIGKILL) -> None:
+        proc = self.procs[f"companion-{i}"]
+        proc.send_signal(sig)
+        proc.wait(timeout=10)
+
+    def alive(self) -> dict[str, bool]:
+        return {name: p.poll() is None for name, p in self.procs.items()}
+
+    def __exit__(self, *exc) -> None:
+        companions = [p for name, p in self.procs.items() if name != "sitl"]
+        for group in (companions, [self.procs.get("sitl")]):
+            group = [p for p in group if p is not None]
+            for p in group:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in group:
+                try:
+                    p.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(timeout=5)
+        for log in self._logs:
+            log.close()
+
+    def stats(self, name: str) -> dict:
+        return json.loads((self.workdir / "stats" / f"{name}.json").read_text())
+
+    def log(self, name: str) -> str:
+        return (self.workdir / "logs" / f"{name}.log").read_text()
+
+
+def wait_for(predicate, timeout_s: float, period_s: float = 0.1) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period_s)
+    return predicate()
+
+
+_ = os  # (kept for callers that pass environment tweaks)

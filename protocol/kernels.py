@@ -1,0 +1,144 @@
+"""The arithmetic of one control tick, compiled (numba): the observer update and prediction, the RFL
+law in x_r coordinates, thrust adaptation and the actuator inverse, for N rows at once.
+
+These are the only implementations of those formulas: ``RFL.control_xr`` and
+``FormationController`` call them, so the batch simulation and a companion run the same code.
+Pure functions of arrays; outputs are written into arrays the caller passes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def _matvec_add(M, x, out, scale=1.0):
+    for r in range(M.shape[0]):
+        acc = 0.0
+        for c in range(M.shape[1]):
+            acc += M[r, c] * x[c]
+        out[r] += scale * acc
+
+
+@numba.njit(cache=True)
+def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
+    """(49) in x_r coordinates for one row (see RFL.control_xr): writes u (6) and y_ddot (6)."""
+    for k in range(6):
+        acc = 0.0
+        for c in range(12):
+            acc += L[k, c] * xr[c]
+        for c in range(6):
+            acc += M0[k, c] * v[c]
+        yddot[k] = acc
+    phi = xr[6]
+    theta = min(max(xr[7], -max_pitch), max_pitch)
+    psi = xr[8]
+    dphi, dth, dpsi = xr[3], xr[4], xr[5]
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(theta), math.cos(theta)
+    sp, cp = math.sin(psi), math.cos(psi)
+    # omega = W eta_dot
+    p = dphi - st * dpsi
+    q = cf * dth + sf * ct * dpsi
+    r = -sf * dth + cf * ct * dpsi
+    # eta_ddot - Psi_dot omega
+    tt, sec = st / ct, 1.0 / ct
+    a0 = yddot[0] - ((cf * tt * dphi + sf * sec * sec * dth) * q + (-sf * tt * dphi + cf * sec * sec * dth) * r)
+    a1 = yddot[1] - ((-sf * dphi) * q + (-cf * dphi) * r)
+    a2 = yddot[2] - ((cf * sec * dphi + sf * sec * tt * dth) * q + (-sf * sec * dphi + cf * sec * tt * dth) * r)
+    # omega_dot = W (eta_ddot - Psi_dot omega) + I^-1 (omega x I omega)
+    Iw0 = I[0, 0] * p + I[0, 1] * q + I[0, 2] * r
+    Iw1 = I[1, 0] * p + I[1, 1] * q + I[1, 2] * r
+    Iw2 = I[2, 0] * p + I[2, 1] * q + I[2, 2] * r
+    c0, c1, c2 = q * Iw2 - r * Iw1, r * Iw0 - p * Iw2, p * Iw1 - q * Iw0
+    w = np.empty(6)
+    w[3] = a0 - st * a2 + Ii[0, 0] * c0 + Ii[0, 1] * c1 + Ii[0, 2] * c2
+    w[4] = cf * a1 + sf * ct * a2 + Ii[1, 0] * c0 + Ii[1, 1] * c1 + Ii[1, 2] * c2
+    w[5] = -sf * a1 + cf * ct * a2 + Ii[2, 0] * c0 + Ii[2, 1] * c1 + Ii[2, 2] * c2
+    # body specific force = R^T (lambda_ddot + g e_z)
+    fx, fy, fz = yddot[3], yddot[4], yddot[5] + g
+    w[0] = ct * cp * fx + ct * sp * fy - st * fz
+    w[1] = (sf * st * cp - cf * sp) * fx + (sf * st * sp + cf * cp) * fy + sf * ct * fz
+    w[2] = (cf * st * cp + sf * sp) * fx + (cf * st * sp - sf * cp) * fy + cf * ct * fz
+    for k in range(6):
+        acc = 0.0
+        for c in range(6):
+            acc += G_inv[k, c] * w[c]
+        u[k] = acc
+
+
+@numba.njit(cache=True)
+def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
+    for i in range(xr.shape[0]):
+        rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, max_pitch, u[i], yddot[i])
+
+
+@numba.njit(cache=True)
+def observe(z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred):
+    """One observer step per row (FOH on y, ZOH on v) then the prediction over the pipe.
+    A row whose measurement is not finite runs the open-loop model instead; a fresh row (just
+    reset at this instant) only takes the measurement. Updates z, y_prev, fresh, z_pred."""
+    n, nz = z.shape
+    tmp = np.empty(nz)
+    for i in range(n):
+        ok = True
+        for k in range(y.shape[1]):
+            if not math.isfinite(y[i, k]):
+                ok = False
+        if fresh[i]:
+            fresh[i] = False
+            if ok:
+                y_prev[i, :] = y[i, :]
+        else:
+            tmp[:] = 0.0
+            if ok:
+                _matvec_add(Phi, z[i], tmp)
+                _matvec_add(Gv, v_applied[i], tmp)
+                _matvec_add(Gy0, y_prev[i], tmp)
+                _matvec_add(Gy1, y[i], tmp)
+                y_prev[i, :] = y[i, :]
+            else:
+                _matvec_add(Phi1, z[i], tmp)
+                _matvec_add(G1, v_applied[i], tmp)
+            z[i, :] = tmp
+        z_pred[i, :] = 0.0
+        _matvec_add(pred_Phi, z[i], z_pred[i])
+        for j in range(pred_G.shape[0]):
+            _matvec_add(pred_G[j], v_pipe[j, i], z_pred[i])
+
+
+@numba.njit(cache=True)
+def actuate(z_pred, z_w, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
+            kappa, adapt_k, k_lo, k_hi, v_out, omega, alpha):
+    """Per row: cancel the estimated disturbance, predict half a period on, RFL, adapt and apply
+    the thrust scale kappa, actuator inverse. Writes v_out (the v committed), omega, alpha; updates
+    kappa in place. z_w is the translational disturbance estimate (rows of zeros without one)."""
+    n, nz = z_pred.shape
+    zm = np.empty(nz)
+    u = np.empty(6)
+    yd = np.empty(6)
+    for i in range(n):
+        v_out[i, :] = v_in[i, :]
+        if use_dist:
+            for k in range(6):
+                acc = 0.0
+                for c in range(6):
+                    acc += Einv[k, c] * z_pred[i, 12 + c]
+                v_out[i, k] -= acc
+        zm[:] = 0.0
+        _matvec_add(half_Phi, z_pred[i], zm)
+        _matvec_add(half_G, v_out[i], zm)
+        rfl_xr_row(zm[:12], v_out[i], L, M0, I, Ii, G_inv, g, max_pitch, u, yd)
+        if adapt_k > 0.0:
+            a0, a1, a2 = yd[3], yd[4], yd[5] + g
+            norm2 = a0 * a0 + a1 * a1 + a2 * a2
+            if norm2 > 1.0:  # below ~1 m/s^2 of commanded thrust the ratio says little
+                step = adapt_k * (z_w[i, 0] * a0 + z_w[i, 1] * a1 + z_w[i, 2] * a2) / norm2
+                kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
+        for j in range(3):
+            s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
+            omega[i, j] = math.sqrt(math.hypot(s, c))
+            alpha[i, j] = math.atan2(s, c)
