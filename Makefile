@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench venv clean lint netns-tools
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
@@ -22,12 +22,23 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/triswarm sim --scenario paper-hexagon --duration 50 --out runs/demo-$$(date +%Y%m%d-%H%M%S) --strict
 
-test: $(STAMP)
+test: $(STAMP) netns-tools lint
 	$(PY) -m pytest
+
+lint: $(STAMP)
+	$(PY) -m ruff check --quiet .
+
+# The lossy-network test impairs Zenoh inside a network namespace with iptables (Debian package).
+# As root, install it when missing; otherwise that test says what it needs.
+netns-tools:
+	@{ command -v iptables && command -v ip; } >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
+		{ echo "installing iptables and iproute2 (apt-get) for the network tests"; \
+		  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iptables iproute2 >/dev/null; }
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
+	$(ONE_CORE) $(PY) tests/bench/bench_stack.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -5,10 +5,12 @@ Estimates are published best effort (express, dropped under congestion) and so r
 estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission.
 Declarations, liveliness, status and health are reliable and ride TCP.
 
-Samples are handed over without Python ever running on a Zenoh thread: every subscriber uses a
-Zenoh ring channel (Rust side, the newest samples kept, older ones dropped), and the loop drains
-the channels with ``try_recv`` at every tick. Decoding, validation and counting happen in the loop.
-No callback, no cross-thread wake-up, no contention for the interpreter lock on the hot path.
+Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
+thread, tags the payload with the agent whose key it came on and appends it to an inbox (a deque,
+the newest 256 kept); while the loop waits for its neighbours it also rings a doorbell (a local
+datagram socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment
+it arrives and the others cost no wake-up at all. Decoding, validation and counting all happen in
+the loop. Liveliness and status change rarely: ring channels the loop drains at every tick.
 """
 
 from __future__ import annotations
@@ -17,8 +19,10 @@ import asyncio
 import json
 import math
 import os
+import socket
 import time
-from collections import Counter
+from collections.abc import Callable
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 # One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
@@ -33,6 +37,7 @@ from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
 DEFAULT_ZENOH_BASE_PORT = 17447
+INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
 
 
 def default_config(agent: int, n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
@@ -65,26 +70,21 @@ def tune(cfg: zenoh.Config) -> zenoh.Config:
 
 
 class Neighbour:
-    """The newest valid estimate from one agent, kept as received; xi is unpacked on first use."""
+    """The newest valid estimate from one agent."""
 
-    __slots__ = ("seq", "stamp_s", "t_plan_s", "status", "received_at", "_payload", "_xi")
+    __slots__ = ("seq", "stamp_s", "t_plan_s", "status", "received_at", "xi")
 
     def __init__(self) -> None:
         self.seq = -1
-        self.stamp_s = -math.inf
-        self.t_plan_s = -math.inf
+        self.stamp_s = -math.inf      # when it was published (the sender's wall clock) [s]
+        self.t_plan_s = -math.inf     # the plan time it refers to [s]
         self.status = AgentStatus.IDLE
-        self.received_at = -math.inf
-        self._payload: bytes | None = None
-        self._xi = None
+        self.received_at = -math.inf  # when this agent took it in [s]
+        self.xi = None                # (12,) x_r order
 
     @property
     def heard(self) -> bool:
-        return self._payload is not None
-
-    @property
-    def xi(self):
-        return self._xi
+        return self.xi is not None
 
 
 @dataclass
@@ -99,9 +99,17 @@ class Bus:
     neighbours: dict[int, Neighbour] = field(default_factory=dict)
     alive: set[int] = field(default_factory=set)
     statuses: dict[int, AgentStatus] = field(default_factory=dict)
+    on_estimate: Callable[[], None] | None = None
+    """Called (in the loop) after new neighbour estimates were taken in."""
 
     def open(self, config: zenoh.Config, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
+        self._inbox: deque[bytes] = deque(maxlen=INBOX_SIZE)
+        self._doorbell, self._bell = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        for sock in (self._doorbell, self._bell):
+            sock.setblocking(False)
+        self.waiting = False
+        """Set by the loop while it waits for estimates: the callbacks then ring the doorbell."""
         self.session = zenoh.open(config)
         s = self.session
         self._pub_estimate = s.declare_publisher(estimate_key(self.swarm, self.agent), express=True,
@@ -110,71 +118,129 @@ class Bus:
         self._pub_status = s.declare_publisher(status_key(self.swarm, self.agent))
         self._pub_health = s.declare_publisher(health_key(self.swarm, self.agent))
         self._token = s.liveliness().declare_token(alive_key(self.swarm, self.agent))
-        self._estimate_subs = [s.declare_subscriber(estimate_key(self.swarm, j), zenoh.handlers.RingChannel(64))
+        for j in self.listen_to:
+            self.neighbours[j] = Neighbour()
+        self._estimate_subs = [s.declare_subscriber(estimate_key(self.swarm, j),
+                                                    zenoh.handlers.Callback(self._handover(j), indirect=False))
                                for j in sorted(self.listen_to)]
         self._status_sub = s.declare_subscriber(status_key(self.swarm, "*"), zenoh.handlers.RingChannel(256))
         self._alive_sub = s.liveliness().declare_subscriber(alive_key(self.swarm, "*"), zenoh.handlers.FifoChannel(1024),
                                                             history=True)
         self._subs = [*self._estimate_subs, self._status_sub, self._alive_sub]
-        for j in self.listen_to:
-            self.neighbours[j] = Neighbour()
         self.alive.add(self.agent)
         self.seq = 0
+        loop.add_reader(self._doorbell.fileno(), self._answer_door)
+
+    def _handover(self, agent: int) -> Callable:
+        """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
+        and ring if the loop is waiting. (Appending before looking at ``waiting``, while the loop
+        sets ``waiting`` before it looks at the inbox, loses no wake-up.)"""
+        tag, append, ring = bytes([agent]), self._inbox.append, self._bell.send
+
+        def handover(sample) -> None:
+            append(tag + sample.payload.to_bytes())
+            if self.waiting:
+                try:
+                    ring(b"!")
+                except OSError:  # the doorbell's buffer is full: the loop is awake anyway
+                    pass
+
+        return handover
+
+    def _answer_door(self) -> None:
+        try:
+            while self._doorbell.recv(16):
+                pass
+        except BlockingIOError:
+            pass
+        self.take_estimates()
 
     def close(self) -> None:
-        for sub in getattr(self, "_subs", []):
+        """Undeclare everything and close the session (again: nothing)."""
+        session = self.__dict__.pop("session", None)
+        if session is None:
+            return
+        for sub in self._subs:
             sub.undeclare()
-        if hasattr(self, "session"):
-            self._token.undeclare()
-            self.session.close()
+        self._token.undeclare()
+        session.close()
+        try:
+            self.loop.remove_reader(self._doorbell.fileno())
+        except (RuntimeError, ValueError):
+            pass
+        self._doorbell.close()
+        self._bell.close()
+
+    def counts(self) -> dict[str, int]:
+        """What the bus took in and what it dropped, by reason."""
+        return dict(self.counters)
 
     # -- the loop ----------------------------------------------------------------------------
 
+    def take_estimates(self) -> None:
+        """Everything the Zenoh callbacks handed over: keep each agent's newest valid estimate."""
+        if not self._inbox:
+            return
+        newest: dict[int, tuple] = {}
+        pop = self._inbox.popleft
+        while self._inbox:
+            data = pop()
+            checked = self._check(data[0], data[1:])
+            if checked is None:
+                continue
+            earlier = newest.get(checked[0])
+            if earlier is None or _newer(checked[6], checked[4], earlier[6], earlier[4]):
+                newest[checked[0]] = checked
+            else:
+                self.counters["drop_old"] += 1
+        if newest:
+            now = time.time()
+            for checked in newest.values():
+                self._take(checked, now)
+            if self.on_estimate is not None:
+                self.on_estimate()
+
     def drain(self) -> None:
-        """Take in everything that arrived since the last call."""
-        now = time.time()
-        for sub in self._estimate_subs:
-            newest = None
-            while (sample := sub.try_recv()) is not None:
-                checked = self._check(str(sample.key_expr), sample.payload.to_bytes())
-                if checked is not None:
-                    newest = checked
-            if newest is not None:
-                self._take(newest, now)
+        """Take in liveliness and status changes (and any estimate not yet read)."""
+        self.take_estimates()
         while (sample := self._alive_sub.try_recv()) is not None:
             self._alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
         while (sample := self._status_sub.try_recv()) is not None:
             self._status(str(sample.key_expr), sample.payload.to_bytes())
 
-    def _check(self, key: str, data: bytes):
-        """Validate one sample's header; count and drop what is not for us or not newer."""
+    def ready(self, agents: list[int], t_plan_s: float, tolerance_s: float) -> bool:
+        """Whether every agent in ``agents`` has an estimate for plan time >= t_plan_s - tolerance_s."""
+        nbs = self.neighbours
+        return all(nbs[j].t_plan_s >= t_plan_s - tolerance_s for j in agents)
+
+    def _check(self, key_agent: int, data: bytes):
+        """Validate one estimate's header; count and drop what is not for us or not newer."""
         try:
             status, agent, plan, seq, stamp, t_plan = decode_header(data)
         except CodecError:
             self.counters["drop_undecodable"] += 1
             return None
         nb = self.neighbours.get(agent)
-        if nb is None or agent_of_key(key) != agent:
+        if nb is None or key_agent != agent:
             self.counters["drop_unknown_agent"] += 1
             return None
         if plan != self.plan_id:
             self.counters["drop_other_plan"] += 1
             return None
-        if seq <= nb.seq:
+        if not _newer(t_plan, seq, nb.t_plan_s, nb.seq):
             self.counters["drop_old"] += 1
             return None
-        return nb, data, status, seq, stamp, t_plan
+        return agent, nb, data, status, seq, stamp, t_plan
 
     def _take(self, checked, t_rx: float) -> None:
         """Keep the newest valid sample of a neighbour (its xi checked here, once)."""
-        nb, data, status, seq, stamp, t_plan = checked
+        _, nb, data, status, seq, stamp, t_plan = checked
         try:
             xi = decode_xi(data)
         except CodecError:
             self.counters["drop_undecodable"] += 1
             return
-        nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.received_at = seq, stamp, t_plan, status, t_rx
-        nb._payload, nb._xi = data, xi
+        nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.received_at, nb.xi = seq, stamp, t_plan, status, t_rx, xi
         self.counters["estimates"] += 1
 
     def _status(self, key: str, data: bytes) -> None:
@@ -214,16 +280,8 @@ class Bus:
     def publish_health(self, health: dict) -> None:
         self._pub_health.put(json.dumps(health).encode())
 
-    def wait_for(self, agents: list[int], t_plan_s: float, tolerance_s: float, timeout_s: float,
-                 poll_s: float = 1e-4) -> None:
-        """Poll (sleeping ``poll_s`` between polls, at most ``timeout_s`` in all) until every agent
-        in ``agents`` has an estimate for plan time >= t_plan_s - tolerance_s. Blocks the loop for
-        at most ``timeout_s``: it is the tick's own time, nothing else waits on the loop then."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self.drain()
-            missing = [j for j in agents if (nb := self.neighbours.get(j)) is None or not nb.heard
-                       or nb.t_plan_s < t_plan_s - tolerance_s]
-            if not missing or time.monotonic() >= deadline:
-                return
-            time.sleep(poll_s)
+
+def _newer(t_plan_s: float, seq: int, than_t_plan_s: float, than_seq: int) -> bool:
+    """Order of one agent's estimates: by the instant they refer to, then by sequence number. (A
+    restarted companion counts its sequence from 1 again; its plan time goes on.)"""
+    return t_plan_s > than_t_plan_s or (t_plan_s == than_t_plan_s and seq > than_seq)

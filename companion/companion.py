@@ -1,14 +1,16 @@
 """The companion: one drone's formation controller between its flight controller and its neighbours.
 
 One asyncio loop. Every complete telemetry sample from the flight controller (ATTITUDE and
-LOCAL_POSITION_NED with the same timestamp, at ``rate_hz``) drives one tick:
+LOCAL_POSITION_NED with the same timestamp, at ``rate_hz``) drives one tick, run in the link's
+reader callback:
 
     1. observe y and predict the state to t_p = t + servo delay (the same FormationController
        as the in-process simulation);
     2. publish xi_i = xhat_i - h_i(t_p) on Zenoh;
-    3. wait (at most ``NB_WAIT_MS``) for the in-neighbours' estimates for the same t_p;
+    3. wait (at most ``NB_WAIT_MS``) for the in-neighbours' estimates for the same t_p (the loop
+       is free meanwhile; an arriving estimate wakes it);
     4. check that a path from the leader remains through the agents that are alive, flying and
-       fresh; if not, hold position (and say so) until one returns;
+       fresh; if not, brake to a hold (and say so) until one returns, then rejoin;
     5. protocol (72) with the neighbours it has, RFL (49), SET_ACTUATOR_CONTROL_TARGET.
 
 Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time.
@@ -31,11 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from triswarm.protocol import model
-from triswarm.protocol.agent import protocol_input, reference_at
+from triswarm.protocol.agent import Reference, protocol_input, reference_at
 from triswarm.protocol.codec import AgentStatus, plan_id
 from triswarm.protocol.controller import FormationController
-from triswarm.protocol.formation import Blend, QuinticTransfer, RelativeTo
-from triswarm.protocol.graph import reachable_within
+from triswarm.protocol.formation import Formation, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
+from triswarm.protocol.graph import Topology, reachable_within
 from triswarm.protocol.mavlink import (COMP_ONBOARD, attitude_to_paper, encode_actuators, local_ned_to_paper,
                                        mavlink, rates_to_paper)
 from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
@@ -106,12 +108,24 @@ def load_plan_file(path: Path) -> Plan:
 
 @dataclass
 class Sample:
-    t_rx: float          # local monotonic time the datagram arrived
+    t_rx: float          # Unix time the datagram arrived (kernel receive time on UDP)
     boot_ms: int         # flight controller time of the sample
     eta: np.ndarray      # paper frame
     rates: np.ndarray
     position: np.ndarray
     velocity_e: np.ndarray
+
+
+@dataclass
+class _Waiting:
+    """A tick between its two halves: waiting for the neighbours' estimates."""
+    sample: Sample
+    xhat: np.ndarray
+    xi: np.ndarray
+    ref: Reference
+    topo: Topology
+    expected: list[int]
+    t_plan: float
 
 
 @dataclass
@@ -135,13 +149,12 @@ class Companion:
         self.fc = FcState()
         self.health = LoopHealth(1.0 / opts.rate_hz)
         self.params = {
-            "CTRL_RATE_HZ": ParamSpec(opts.rate_hz, 1.0, 2000.0, read_only=True),
-            "NB_TIMEOUT_S": ParamSpec(0.2, 0.01, 10.0),
-            "NB_WAIT_MS": ParamSpec(1.0, 0.0, 4.0),
-            "REJOIN_S": ParamSpec(6.0, 1.0, 60.0),
-            "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),
-            "POS_BOUND_M": ParamSpec(0.10, 0.0, 100.0),
-            "ATT_BOUND_RAD": ParamSpec(0.02, 0.0, 3.2),
+            "CTRL_RATE_HZ": ParamSpec(opts.rate_hz, 1.0, 2000.0, read_only=True),  # control (telemetry) rate
+            "NB_TIMEOUT_S": ParamSpec(0.2, 0.01, 10.0),  # a neighbour's estimate older than this: absent [s]
+            "NB_WAIT_MS": ParamSpec(1.0, 0.0, 4.0),      # longest wait for the neighbours' estimates [ms]
+            "REJOIN_S": ParamSpec(1.0, 0.2, 60.0),       # shortest way back into the formation [s]
+            "REJOIN_ACCEL": ParamSpec(4.0, 0.5, 20.0),   # peak acceleration on the way back [m/s^2]
+            "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),  # high-rate telemetry forwarded to the GCS [Hz]
         }
         self.values = {k: p.default for k, p in self.params.items()}
         self.phase = Phase.IDLE
@@ -152,6 +165,9 @@ class Companion:
         self._errors = 0
         self._flying_since = -math.inf
         self._t_p = -math.inf
+        self._waiting: _Waiting | None = None
+        self._flying: Formation | None = None  # the formation being flown (the entry first)
+        self._deadline: asyncio.TimerHandle | None = None
 
     # -- plan ---------------------------------------------------------------------------------
 
@@ -193,14 +209,17 @@ class Companion:
             tasks.append(asyncio.create_task(self._every_second()))
             tasks.append(asyncio.create_task(self._mission_task()))
             await stop.wait()
-        finally:
+        finally:  # stop ticking first, then the tasks, then the bus
+            for link in self.links:
+                link.close()
+            if self._deadline is not None:
+                self._deadline.cancel()
+            self._waiting = None
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             if hasattr(self, "bus"):
                 self.bus.close()
-            for link in self.links:
-                link.close()
         return self.stats()
 
     def _open_bus(self, loop) -> None:
@@ -209,6 +228,7 @@ class Companion:
         listen_to = frozenset(int(j) + 1 for t in plan.schedule.topologies for j in t.in_neighbours(i))
         swarm = self.opts.swarm or plan.name
         self.bus = Bus(swarm, self.agent, self.mission.plan_id, listen_to, plan.n_agents)
+        self.bus.on_estimate = self._on_estimate
         self.bus.open(self._zenoh_config(plan.n_agents), loop)
         self._design = plan.design
         self._in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in plan.schedule.topologies}
@@ -217,6 +237,11 @@ class Companion:
                                         thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
         omega, alpha = model.hover_trim(plan.airframe)
         self._idle = (omega * IDLE_FRACTION, alpha)
+        # Load the compiled kernels now (a few hundred milliseconds), not at the first tick in the air.
+        scratch = FormationController(self._design, 1, self.opts.rate_hz)
+        scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
+        scratch.observe(np.r_[np.zeros(5), 1.0][None, :])
+        scratch.actuate(np.zeros((1, 6)))
         self.bus.publish_status(AgentStatus.IDLE)
 
     def _zenoh_config(self, n_agents: int):
@@ -364,6 +389,9 @@ class Companion:
             self.store.save(m)
             self.phase = Phase.SCHEDULED
             self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
+            if time.time() > m.start_unix_s - ARM_LEAD_S:
+                self.statustext(f"companion {self.agent}: ready {time.time() - m.start_unix_s + ARM_LEAD_S:.1f} s "
+                                f"late for the start", mavlink.MAV_SEVERITY_WARNING)
             await asyncio.sleep(max(0.0, m.start_unix_s - ARM_LEAD_S - time.time()))
             await self._arm()
             await asyncio.sleep(max(0.0, m.start_unix_s - time.time()))
@@ -390,7 +418,8 @@ class Companion:
         m.phase = "flying"
         self.store.save(m)
         start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self.offsets = self.plan.entry_formation(start, t0_unix - m.start_unix_s).offsets
+        self._flying = self.plan.entry_formation(start, t0_unix - m.start_unix_s)
+        self.offsets = self._flying.offsets
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -406,12 +435,13 @@ class Companion:
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         t_plan = self._plan_time(self._last_sample)
-        self._hold = self._braking(t_plan, x)
+        self._flying = self.plan.formation
+        self._hold = self._braking(t_plan + self.ctrl.lead_s, self.ctrl.rfl.phi_r(x[None, :])[0])
         self._rejoin(t_plan)
 
     def _braking(self, t: float, x: np.ndarray) -> QuinticTransfer:
-        """From state x (28-style paper state or x_r estimate rows as p, v, eta, eta_dot) at plan
-        time t to rest at its stopping point, level, for every row (absolute, local frame)."""
+        """From x_r = [lambda_dot, eta_dot, eta, lambda] at plan time t to rest at its stopping
+        point, level, for every row (absolute, local frame)."""
         p0, v0, eta0, eta_dot0 = x[9:12], x[0:3], x[6:9], x[3:6]
         T = max(2.0, float(np.linalg.norm(v0)) / 2.0)
         n = self.plan.n_agents
@@ -420,10 +450,19 @@ class Companion:
                                tile([0.0, 0.0, eta0[2]]), t, T)
 
     def _rejoin(self, t_plan: float) -> None:
-        """Blend from the braking/held trajectory into the formation over REJOIN_S seconds: the
-        reference starts exactly where (and as fast as) the drone is."""
+        """Back into the formation from the braking/held trajectory: the reference starts exactly
+        where (and as fast as) the drone is meant to be, and its distance to the formation decays
+        over REJOIN_S seconds, longer if the way back is long (peak acceleration REJOIN_ACCEL_M_S2)."""
         source = RelativeTo(self._hold, self.plan.leader)
-        self.offsets = Blend(source, self.plan.formation, t_plan, self.values["REJOIN_S"]).offsets
+        t0 = t_plan + self.ctrl.lead_s  # references are evaluated at the time the estimates refer to
+        target = self._flying or self.plan.formation  # the entry, if it is not over
+        rejoin = Rejoin(source, target, t0, self.values["REJOIN_S"])
+        dp, dv = (float(np.linalg.norm(e[self.agent - 1])) for e in rejoin.initial_error)
+        duration_s = rejoin_duration(dp, dv, self.values["REJOIN_ACCEL"], self.values["REJOIN_S"])
+        if duration_s > rejoin.duration_s:
+            rejoin = Rejoin(source, target, t0, duration_s)
+        log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
+        self.offsets = rejoin.offsets
         self._set_phase(Phase.FLYING, "")
 
     def _set_phase(self, phase: Phase, reason: str) -> None:
@@ -457,6 +496,8 @@ class Companion:
         last command (deadline misses)."""
         if not self._queue:
             return
+        if self._waiting is not None:  # a new sample before the neighbours came: act now
+            self._finish_tick()
         backlog = list(self._queue)
         self._queue.clear()
         try:
@@ -464,14 +505,22 @@ class Companion:
                 for old in backlog[:-1]:
                     self.ctrl.hold_tick(np.concatenate([old.eta, old.position])[None, :])
             if len(backlog) > 1:
-                self.health.skipped(len(backlog) - 1)
+                half = 0.5 / self.opts.rate_hz
+                together = sum(b.t_rx - a.t_rx < half for a, b in zip(backlog, backlog[1:]))
+                self.health.skipped(len(backlog) - 1 - together, together)
             self._tick(backlog[-1])
         except Exception:  # a bad tick costs one command, never the loop
-            self._errors += 1
-            if self._errors <= 3:
-                log.exception("tick failed")
+            self._tick_failed()
+
+    def _tick_failed(self) -> None:
+        self._waiting = None
+        self._errors += 1
+        if self._errors <= 3:
+            log.exception("tick failed")
 
     def _tick(self, s: Sample) -> None:
+        """First half of a tick: estimate, publish, and wait for the neighbours' estimates of the
+        same instant (at most NB_WAIT_MS from now; see ``_finish_tick``)."""
         if self.fc.max_rpm is None or self.plan is None:
             return
         self.bus.drain()
@@ -485,33 +534,73 @@ class Companion:
         lead, dt = self.ctrl.lead_s, self.ctrl.dt_s
         i = self.agent - 1
         self._t_p = t_plan + lead
-        if self.phase == Phase.FLYING:
-            ref = reference_at(self._design, self.offsets, self.plan.leader_state, t_plan, lead, dt, rows=[i])
-            xi = xhat - ref.h
-            self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
-            topo = self.plan.schedule.at(ref.t_p)
-            inn = self._in_neighbours[topo.name]
-            self.bus.wait_for([j for j in inn if self._usable(j, check_fresh=False)], ref.t_p,
-                              0.5 * dt, self.values["NB_WAIT_MS"] / 1000.0)
-            present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
-            if not self._has_path(topo, present):
-                self._start_hold(t_plan, xhat[0], f"no path to the leader in {topo.name}")
+        if self.phase == Phase.HOLDING:
+            self._hold_step(s, xhat, t_plan)
+            return
+        ref = reference_at(self._design, self.offsets, self.plan.leader_state, t_plan, lead, dt, rows=[i])
+        xi = xhat - ref.h
+        self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
+        topo = self.plan.schedule.at(ref.t_p)
+        expected = [j for j in self._in_neighbours[topo.name] if self._usable(j, check_fresh=False)]
+        self._waiting = _Waiting(s, xhat, xi, ref, topo, expected, t_plan)
+        self.bus.waiting = True  # before looking: an estimate arriving from now on rings
+        self.bus.take_estimates()  # (may complete the tick through _on_estimate)
+        if self._waiting is not None:
+            if self.bus.ready(expected, ref.t_p, 0.5 * dt):
+                self._finish_tick()
             else:
-                used = [j for j in inn if present[j - 1] and self.bus.neighbours[j].heard]
-                weights = topo.adjacency[i, [j - 1 for j in used]]
-                nsum = sum(w * self.bus.neighbours[j].xi for w, j in zip(weights, used)) if used else np.zeros(12)
-                now = time.time()
-                for j in used:
-                    self.health.neighbour_age[j].add(now - self.bus.neighbours[j].stamp_s)
-                v = protocol_input(self._design, xi, np.asarray(nsum)[None, :], np.array([weights.sum()]),
-                                   topo.pinning[i:i + 1], ref.x0, ref.gamma)
-                if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
-                    formation, _ = self.plan.reference(ref.t_p)
-                    self.health.formation_error.add(float(np.linalg.norm(xhat[0, 9:12] - formation[i, 9:12])))
-                self._actuate(v, s)
-                return
-        # holding: pinned to its own absolute reference, no neighbours
-        ref = reference_at(self._design, self._hold.offsets, _no_leader, t_plan, lead, dt, rows=[i])
+                # the wait counts from now, not from the datagram's arrival: a late wake-up
+                # must not also cost the neighbours' estimates
+                self._deadline = self.loop.call_later(self.values["NB_WAIT_MS"] / 1000.0, self._finish_tick)
+
+    def _on_estimate(self) -> None:
+        w = self._waiting
+        if w is not None and self.bus.ready(w.expected, w.ref.t_p, 0.5 * self.ctrl.dt_s):
+            self._finish_tick()
+
+    def _finish_tick(self) -> None:
+        """Second half: the neighbours' estimates are in (or the wait is over): check the path
+        from the leader, then protocol (72), RFL (49) and the command."""
+        w, self._waiting = self._waiting, None
+        self.bus.waiting = False
+        if w is None:
+            return
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        try:
+            self._protocol_step(w)
+        except Exception:
+            self._tick_failed()
+
+    def _protocol_step(self, w: "_Waiting") -> None:
+        i, topo, bus = self.agent - 1, w.topo, self.bus
+        present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
+        if not self._has_path(topo, present):
+            self._start_hold(w.t_plan, w.xhat[0], f"no path to the leader in {topo.name}")
+            self._hold_step(w.sample, w.xhat, w.t_plan)
+            return
+        used = [j for j in self._in_neighbours[topo.name] if present[j - 1] and bus.neighbours[j].heard]
+        weights = topo.adjacency[i, [j - 1 for j in used]]
+        nsum = np.zeros(12)
+        now = time.time()
+        for w_ij, j in zip(weights, used):
+            nb = bus.neighbours[j]
+            nsum += w_ij * nb.xi
+            self.health.neighbour_age[j].add(now - nb.stamp_s)
+        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weights.sum()]),
+                           topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
+        self._actuate(v, w.sample)
+        if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
+            formation, _ = self.plan.reference(w.ref.t_p)
+            self.health.formation_error.add(float(np.linalg.norm(w.xhat[0, 9:12] - formation[i, 9:12])))
+
+    def _hold_step(self, s: Sample, xhat: np.ndarray, t_plan: float) -> None:
+        """Holding: pinned to its own absolute reference (the braking trajectory), no neighbours;
+        back to the formation as soon as a path from the leader returns."""
+        i = self.agent - 1
+        ref = reference_at(self._design, self._hold.offsets, _no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s,
+                           rows=[i])
         self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
         present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
         if self._has_path(self.plan.schedule.at(ref.t_p), present):
@@ -578,7 +667,7 @@ class Companion:
         controls = encode_actuators(omega, alpha, self.fc.max_rpm * math.pi / 30.0, math.radians(self.fc.servo_deg))
         frame = mavlink.MAVLink_set_actuator_control_target_message(
             int(time.time() * 1e6), 0, self.agent, 1, controls).pack(self.fc_link.codec)
-        self.health.tick(t_rx, time.monotonic())  # the command leaves now (loopback may preempt us in the call)
+        self.health.tick(t_rx, time.time())  # the command leaves now (loopback may preempt us in the call)
         self.fc_link.write(frame)
 
     # -- the ground station and component 191 -------------------------------------------------
@@ -674,7 +763,7 @@ class Companion:
         ages = {j: (now - nb.stamp_s if nb.heard else math.inf) for j, nb in self.bus.neighbours.items()}
         report = self.health.report(ages)
         report.update(agent=self.agent, phase=self.phase.value, alive=sorted(self.bus.alive),
-                      counters=dict(self.bus.counters), t=now)
+                      counters=self.bus.counts(), t=now)
         return report
 
     def stats(self) -> dict:
@@ -682,7 +771,7 @@ class Companion:
                "tick_errors": self._errors,
                "links": {lk.name: dict(lk.counters) for lk in self.links}}
         if hasattr(self, "bus"):
-            out["zenoh"] = dict(self.bus.counters)
+            out["zenoh"] = self.bus.counts()
         return out
 
 

@@ -4,26 +4,46 @@ from __future__ import annotations
 
 import math
 import time
-from collections import defaultdict, deque
+from collections import Counter, defaultdict, deque
 
 import numpy as np
 
 
 class Window:
-    """The last ``n`` samples of a quantity, plus every sample for whole-run percentiles."""
+    """The last ``n`` samples of a quantity (for the 1 Hz report), and a log histogram of every
+    sample (for whole-run percentiles, 2 % resolution, constant memory however long the flight)."""
+
+    RATIO = 1.02
+    FLOOR = 1e-7  # values at or below it share the first bin
 
     def __init__(self, n: int = 400, keep_all: bool = True) -> None:
         self.recent: deque[float] = deque(maxlen=n)
-        self.all: list[float] | None = [] if keep_all else None
+        self.bins: Counter[int] | None = Counter() if keep_all else None
+        self.count = 0
 
     def add(self, value: float) -> None:
         self.recent.append(value)
-        if self.all is not None:
-            self.all.append(value)
+        if self.bins is not None:
+            self.count += 1
+            self.bins[_bin(value, self.FLOOR, self.RATIO) if value > self.FLOOR else 0] += 1
 
     def percentile(self, q: float, recent: bool = True) -> float:
-        data = self.recent if recent else (self.all or [])
-        return float(np.percentile(np.fromiter(data, float), q)) if len(data) else math.nan
+        """The q-th percentile of the recent samples, or of all of them (to within 2 %)."""
+        if recent or self.bins is None:
+            return float(np.percentile(np.fromiter(self.recent, float), q)) if self.recent else math.nan
+        if not self.count:
+            return math.nan
+        rank = q / 100.0 * self.count
+        seen = 0
+        for k in sorted(self.bins):
+            seen += self.bins[k]
+            if seen >= rank:
+                return self.FLOOR * self.RATIO ** (k - 0.5) if k else self.FLOOR
+        return math.nan
+
+
+def _bin(value: float, floor: float, ratio: float) -> int:
+    return 1 + int(math.log(value / floor) / math.log(ratio))
 
 
 class LoopHealth:
@@ -32,12 +52,13 @@ class LoopHealth:
         self.ticks = 0
         self.deadline_misses = 0
         self.skipped_samples = 0
-        self.interval = Window()          # between consecutive telemetry samples the loop handled [s]
+        self.superseded_samples = 0
+        self.jitter = Window()            # |interval between consecutive commands - period| [s]
         self.latency = Window()           # telemetry datagram received -> command written [s]
         self.telemetry_age = Window()     # command written - telemetry sample time (FC clock) [s]
         self.neighbour_age: dict[int, Window] = defaultdict(Window)  # use time - publish time [s]
         self.formation_error = Window(n=200, keep_all=False)
-        self._last_rx: float | None = None
+        self._last_sent: float | None = None
         self._rate_count = 0
         self._rate_t0 = time.monotonic()
         self.loop_rate_hz = math.nan
@@ -45,22 +66,28 @@ class LoopHealth:
         self._wall0 = 0.0
 
     def tick(self, t_rx: float, t_sent: float) -> None:
-        """One control step: telemetry received at t_rx, command written at t_sent (monotonic)."""
+        """One control step: telemetry received at t_rx, command written at t_sent (Unix time [s])."""
         if self._cpu0 is None:
             self._cpu0, self._wall0 = time.process_time(), time.monotonic()
         self.ticks += 1
         self._rate_count += 1
-        if self._last_rx is not None:
-            self.interval.add(t_rx - self._last_rx)
-        self._last_rx = t_rx
+        if self._last_sent is not None:
+            self.jitter.add(abs(t_sent - self._last_sent - self.period_s))
+        self._last_sent = t_sent
         self.latency.add(t_sent - t_rx)
         if t_sent - t_rx > self.period_s:
             self.deadline_misses += 1
 
-    def skipped(self, n: int = 1) -> None:
-        """Samples that arrived while the loop was still busy and were never acted on."""
-        self.skipped_samples += n
-        self.deadline_misses += n
+    def skipped(self, missed: int, superseded: int = 0) -> None:
+        """Samples never acted on: ``missed`` arrived while the loop was late (deadline misses);
+        ``superseded`` were followed within half a period by the next one (the flight controller
+        sent them late, together: its lag, not the loop's, so not a deadline miss). Before the first
+        command (setting up) nothing counts."""
+        if not self.ticks:
+            return  # the loop has not started: nothing was due
+        self.skipped_samples += missed + superseded
+        self.superseded_samples += superseded
+        self.deadline_misses += missed
 
     def cpu_fraction(self) -> float:
         """Share of one core this process used since its first tick."""
@@ -74,10 +101,9 @@ class LoopHealth:
         if now - self._rate_t0 > 0:
             self.loop_rate_hz = self._rate_count / (now - self._rate_t0)
         self._rate_count, self._rate_t0 = 0, now
-        jitter = [abs(x - self.period_s) for x in self.interval.recent]
         return {
             "loop_rate_hz": round(self.loop_rate_hz, 2),
-            "jitter_p99_ms": round(1e3 * float(np.percentile(jitter, 99)), 3) if jitter else None,
+            "jitter_p99_ms": _ms(self.jitter.percentile(99)),
             "latency_p50_ms": _ms(self.latency.percentile(50)),
             "latency_p99_ms": _ms(self.latency.percentile(99)),
             "deadline_misses": self.deadline_misses,
@@ -91,17 +117,20 @@ class LoopHealth:
 
     def summary(self) -> dict:
         """Whole-run numbers (for benchmarks)."""
-        jitter = [abs(x - self.period_s) for x in (self.interval.all or [])]
-        ages = [a for w in self.neighbour_age.values() for a in (w.all or [])]
+        ages = Window(n=1)
+        for w in self.neighbour_age.values():
+            ages.bins.update(w.bins)
+            ages.count += w.count
         return {
             "ticks": self.ticks,
             "deadline_misses": self.deadline_misses,
             "skipped_samples": self.skipped_samples,
-            "jitter_p99_ms": 1e3 * float(np.percentile(jitter, 99)) if jitter else None,
+            "superseded_samples": self.superseded_samples,
+            "jitter_p99_ms": _ms(self.jitter.percentile(99, recent=False)),
             "latency_p50_ms": _ms(self.latency.percentile(50, recent=False)),
             "latency_p99_ms": _ms(self.latency.percentile(99, recent=False)),
-            "neighbour_age_p50_ms": 1e3 * float(np.percentile(ages, 50)) if ages else None,
-            "neighbour_age_p99_ms": 1e3 * float(np.percentile(ages, 99)) if ages else None,
+            "neighbour_age_p50_ms": _ms(ages.percentile(50, recent=False)),
+            "neighbour_age_p99_ms": _ms(ages.percentile(99, recent=False)),
             "cpu_fraction": self.cpu_fraction(),
         }
 

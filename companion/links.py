@@ -3,11 +3,17 @@
 pymavlink provides the transports (``udpin:``, ``udpout:``, ``tcp:``, serial ports); frames are
 parsed and packed by the project's own codec (``protocol.mavlink``, MAVLink 2), so nothing depends on
 pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``).
+
+On UDP links every datagram carries the kernel's receive time (SO_TIMESTAMPNS), so the time a
+sample "arrived" includes the wait before the process got to read it; other transports fall back
+to the time of the read. All receive times are Unix time [s].
 """
 
 from __future__ import annotations
 
 import asyncio
+import socket
+import struct
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -17,10 +23,14 @@ from pymavlink import mavutil
 from triswarm.protocol.mavlink import new_codec, reset_parser
 
 MAX_READS_PER_WAKEUP = 64
+MAX_DATAGRAM = 65535
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python does not export it
+_TIMESPEC = struct.Struct("@qq")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
 
 
 class MavLink:
-    """One MAVLink link. ``on_receive(link, messages, t_rx_monotonic)`` gets every parsed batch."""
+    """One MAVLink link. ``on_receive(link, messages, t_rx_unix_s)`` gets every parsed batch."""
 
     def __init__(self, name: str, url: str, sysid: int, compid: int) -> None:
         self.name, self.url = name, url
@@ -40,6 +50,11 @@ class MavLink:
         except (OSError, ValueError) as exc:
             raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
         self._datagrams = isinstance(self.conn, mavutil.mavudp)
+        if self._datagrams:
+            try:
+                self.conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            except OSError:  # not Linux: receive times are read times
+                pass
         self._on_receive = on_receive
         loop.add_reader(self.conn.fd, self._readable)
 
@@ -62,13 +77,12 @@ class MavLink:
     def _read_all(self) -> None:
         for _ in range(MAX_READS_PER_WAKEUP):
             try:
-                data = self.conn.recv(65535)
+                data, t_rx = self._recv_datagram() if self._datagrams else (self.conn.recv(MAX_DATAGRAM), time.time())
             except OSError:
                 self.counters["read_errors"] += 1
                 return
             if not data:
                 return
-            t_rx = time.monotonic()
             if isinstance(data, str):
                 data = data.encode("latin-1")
             if self._datagrams:
@@ -88,6 +102,24 @@ class MavLink:
             self.counters["rx"] += len(good)
             if good:
                 self._on_receive(self, good, t_rx)
+
+    def _recv_datagram(self) -> tuple[bytes, float]:
+        """One datagram and the kernel's receive time; b"" when none is waiting. Keeps pymavlink's
+        record of the peers of a ``udpin`` link, which its ``write`` answers."""
+        conn = self.conn
+        try:
+            data, ancillary, flags, addr = conn.port.recvmsg(MAX_DATAGRAM, _ANCILLARY)
+        except BlockingIOError:
+            return b"", 0.0
+        t_rx = time.time()
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(value)
+                t_rx = sec + 1e-9 * nsec
+        if conn.udp_server:
+            conn.clients.add(addr)
+            conn.clients_last_alive[addr] = t_rx
+        return data, t_rx
 
     def send(self, msg) -> None:
         """Pack a pymavlink message object as this process (sysid/compid of the link) and send it."""

@@ -30,6 +30,8 @@ class Recorder:
         self.tracks: dict[int, Track] = {}
         self.statustexts: list[tuple[float, int, str]] = []
         self.heartbeats: dict[int, object] = {}
+        self.modes: dict[int, list[tuple[float, int, bool]]] = {}
+        """Per vehicle, every change of (custom mode, armed) with the Unix time it was heard."""
         self._socks = {}
         self._codec = new_codec(254, 190)
         for v in manifest["vehicles"]:
@@ -107,6 +109,10 @@ class Recorder:
             self.statustexts.append((time.time(), sysid, m.text))
         elif t == "HEARTBEAT" and m.get_srcComponent() == 1:
             self.heartbeats[sysid] = m
+            state = (m.custom_mode, bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
+            history = self.modes.setdefault(sysid, [])
+            if not history or history[-1][1:] != state:
+                history.append((time.time(), *state))
 
     def arrays(self, start_unix: float, dt_s: float = 0.05, t_from: float | None = None, t_to: float | None = None):
         """Every vehicle resampled on a common plan-time grid: (t (T,), position (T, N, 3), euler

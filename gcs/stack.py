@@ -4,7 +4,6 @@ real processes on loopback, and stop every one of them."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -48,7 +47,7 @@ class Stack:
     plan_path: Path
     workdir: Path
     n: int
-    start_delay_s: float = 8.0
+    start_delay_s: float = 12.0
     rate_hz: float = 200.0
     sitl_args: list[str] = field(default_factory=list)
     companion_args: dict[int, list[str]] = field(default_factory=dict)
@@ -130,15 +129,3 @@ class Stack:
 
     def log(self, name: str) -> str:
         return (self.workdir / "logs" / f"{name}.log").read_text()
-
-
-def wait_for(predicate, timeout_s: float, period_s: float = 0.1) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period_s)
-    return predicate()
-
-
-_ = os  # (kept for callers that pass environment tweaks)

@@ -8,7 +8,7 @@ to), 124 bytes, little endian:
     1      1     status (AgentStatus)
     2      2     agent number (from 1)
     4      4     plan id (see plan_id)
-    8      4     sequence number (per agent, increasing)
+    8      4     sequence number (per agent, increasing from 1 each time the companion starts)
     12     8     wall-clock time the estimate was published [s since the Unix epoch]
     20     8     plan time the estimate refers to [s]
     28     96    xi, 12 float64 in x_r order [lambda_dot, eta_dot, eta, lambda]
@@ -78,7 +78,7 @@ def decode_header(data: bytes) -> tuple[AgentStatus, int, int, int, float, float
 
 def decode_xi(data: bytes) -> np.ndarray:
     xi = np.frombuffer(data, dtype="<f8", count=12, offset=_HEADER.size)
-    if not np.all(np.isfinite(xi)):
+    if not np.isfinite(xi).all():
         raise CodecError("non-finite number")
     return xi
 

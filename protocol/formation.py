@@ -12,6 +12,8 @@ condition (76) holds. A formation given as raw 12-vectors is checked by ``design
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -198,14 +200,9 @@ def quintic_blend(tau: float) -> tuple[float, float, float]:
 
 
 @dataclass(frozen=True)
-class Blend(Formation):
-    """From one formation to another by a quintic blend over [t0_s, t0_s + duration_s]:
-
-        p(t) = (1 - s(t)) p_from(t) + s(t) p_to(t),   eta likewise,
-
-    differentiated with the product rule, so (76) holds throughout. Before t0 it is ``source``,
-    after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
-    exactly where and how fast that source is."""
+class _Transition(Formation):
+    """From ``source`` to ``target`` over [t0_s, t0_s + duration_s] (the common part of a blend
+    and a rejoin)."""
 
     source: Formation
     target: Formation
@@ -213,10 +210,11 @@ class Blend(Formation):
     duration_s: float
 
     def __post_init__(self) -> None:
+        kind = type(self).__name__.lower()
         if self.source.n_agents != self.target.n_agents:
-            raise ParameterError("a blend needs formations of the same number of agents")
+            raise ParameterError(f"a {kind} needs formations of the same number of agents")
         if not (np.isfinite(self.duration_s) and self.duration_s > 0 and np.isfinite(self.t0_s)):
-            raise ParameterError(f"blend duration must be a positive number of seconds, got {self.duration_s!r}")
+            raise ParameterError(f"{kind} duration must be a positive number of seconds, got {self.duration_s!r}")
 
     @property
     def n_agents(self) -> int:
@@ -225,6 +223,17 @@ class Blend(Formation):
     @property
     def end_s(self) -> float:
         return self.t0_s + self.duration_s
+
+
+@dataclass(frozen=True)
+class Blend(_Transition):
+    """From one formation to another by a quintic blend over [t0_s, t0_s + duration_s]:
+
+        p(t) = (1 - s(t)) p_from(t) + s(t) p_to(t),   eta likewise,
+
+    differentiated with the product rule, so (76) holds throughout. Before t0 it is ``source``,
+    after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
+    exactly where and how fast that source is."""
 
     def kinematics(self, t_s: float) -> Kinematics:
         T = self.duration_s
@@ -244,6 +253,65 @@ class Blend(Formation):
         p, pd, pdd = mix(a.p, a.p_dot, a.p_ddot, b.p, b.p_dot, b.p_ddot)
         e, ed, edd = mix(a.eta, a.eta_dot, a.eta_ddot, b.eta, b.eta_dot, b.eta_ddot)
         return Kinematics(p, pd, pdd, e, ed, edd)
+
+
+@dataclass(frozen=True)
+class Rejoin(_Transition):
+    """Back into ``target`` from wherever ``source`` is at t0: the difference source - target at t0
+    and its rate decay to zero by a quintic over [t0_s, t0_s + duration_s]:
+
+        x(t) = x_target(t) + e(t - t0),   e(0), e'(0) from the source, e''(0) = 0,   e = e' = e'' = 0 at the end,
+
+    for positions and attitudes alike. The reference continues the source in position and velocity
+    (the acceleration steps, as it does when a hold begins) and is exactly the target afterwards.
+    Unlike a ``Blend`` the source is not followed after t0: a drone that was braking to a hold does
+    not go on braking while it rejoins. ``rejoin_duration`` picks a duration for a peak acceleration."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        a, b = self.source.kinematics(self.t0_s), self.target.kinematics(self.t0_s)
+        T = self.duration_s
+        coeffs = [_quintic_to_rest(xa - xb, va - vb, np.zeros_like(xa), T)
+                  for xa, va, xb, vb in ((a.p, a.p_dot, b.p, b.p_dot), (a.eta, a.eta_dot, b.eta, b.eta_dot))]
+        object.__setattr__(self, "_coeffs", coeffs)
+
+    @property
+    def initial_error(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position [m] and velocity [m/s] of the source relative to the target at t0, (N, 3) each."""
+        return self._coeffs[0][0], self._coeffs[0][1]
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        if t_s < self.t0_s:
+            return self.source.kinematics(t_s)
+        b = self.target.kinematics(t_s)
+        if t_s >= self.end_s:
+            return b
+        tau = t_s - self.t0_s
+        (pe, pv, pa), (ee, ev, ea) = (_quintic_eval(c, tau) for c in self._coeffs)
+        return Kinematics(b.p + pe, b.p_dot + pv, b.p_ddot + pa, b.eta + ee, b.eta_dot + ev, b.eta_ddot + ea)
+
+
+def rejoin_duration(position_error_m: float, velocity_error_m_s: float, accel_m_s2: float, min_s: float) -> float:
+    """A duration for a ``Rejoin`` whose quintic peaks near ``accel_m_s2``: a position error d alone
+    peaks at (10 / sqrt 3) d / T^2, a velocity error v alone at about 3.94 v / T (never below min_s)."""
+    return max(min_s, math.sqrt(10.0 / math.sqrt(3.0) * abs(position_error_m) / accel_m_s2),
+               3.94 * abs(velocity_error_m_s) / accel_m_s2)
+
+
+def _quintic_to_rest(x0, v0, a0, T):
+    """Coefficients c0..c5 of the quintic with x(0), x'(0), x''(0) given and x = x' = x'' = 0 at T."""
+    c3 = (-20.0 * x0 - 12.0 * v0 * T - 3.0 * a0 * T**2) / (2.0 * T**3)
+    c4 = (30.0 * x0 + 16.0 * v0 * T + 3.0 * a0 * T**2) / (2.0 * T**4)
+    c5 = (-12.0 * x0 - 6.0 * v0 * T - a0 * T**2) / (2.0 * T**5)
+    return x0, v0, 0.5 * a0, c3, c4, c5
+
+
+def _quintic_eval(c, tau: float):
+    c0, c1, c2, c3, c4, c5 = c
+    x = c0 + tau * (c1 + tau * (c2 + tau * (c3 + tau * (c4 + tau * c5))))
+    xd = c1 + tau * (2.0 * c2 + tau * (3.0 * c3 + tau * (4.0 * c4 + tau * 5.0 * c5)))
+    xdd = 2.0 * c2 + tau * (6.0 * c3 + tau * (12.0 * c4 + tau * 20.0 * c5))
+    return x, xd, xdd
 
 
 def EntryBlend(target: Formation, start_position_m, start_attitude_rad, t0_s: float, duration_s: float) -> Blend:
@@ -288,22 +356,13 @@ class RawOffsets:
         return np.asarray(self.h_fn(t_s), dtype=float), np.asarray(self.h_dot_fn(t_s), dtype=float)
 
 
-def _quintic_coefficients(x0, v0, x1, T):
-    """Coefficients c0..c5 (each shaped like x0) of the quintic with x(0) = x0, x'(0) = v0,
-    x''(0) = 0, x(T) = x1, x'(T) = 0, x''(T) = 0."""
-    d = x1 - x0 - v0 * T
-    c3 = (10.0 * d + 4.0 * v0 * T) / T**3
-    c4 = (-15.0 * d - 7.0 * v0 * T) / T**4
-    c5 = (6.0 * d + 3.0 * v0 * T) / T**5
-    return x0, v0, c3, c4, c5
-
-
 @dataclass(frozen=True)
 class QuinticTransfer(Formation):
     """From a moving state (position, velocity, attitude, attitude rate at t0) to rest at a target
     position and attitude at t0 + duration, by a quintic per axis (zero acceleration at both ends);
     it holds the target afterwards. Used for a flight controller's own manoeuvres (hold, land,
-    takeoff) entered at any speed; before t0 it holds the start at rest. Arrays are (N, 3)."""
+    takeoff) entered at any speed; before t0 it extrapolates the start at its velocity (so a
+    reference that switches to it a little early sees no jump). Arrays are (N, 3)."""
 
     p0: np.ndarray
     p_dot0: np.ndarray
@@ -338,12 +397,9 @@ class QuinticTransfer(Formation):
             if t_s >= self.t0_s + T:
                 return x1, z, z
             if t_s < self.t0_s:
-                return x0, z, z
-            c0, c1, c3, c4, c5 = _quintic_coefficients(x0, v0, x1, T)
-            x = c0 + tau * (c1 + tau * tau * (c3 + tau * (c4 + tau * c5)))
-            xd = c1 + tau * tau * (3.0 * c3 + tau * (4.0 * c4 + 5.0 * c5 * tau))
-            xdd = tau * (6.0 * c3 + tau * (12.0 * c4 + 20.0 * c5 * tau))
-            return x, xd, xdd
+                return x0 + v0 * (t_s - self.t0_s), v0, z
+            e, ed, edd = _quintic_eval(_quintic_to_rest(x0 - x1, v0, z, T), tau)
+            return x1 + e, ed, edd
 
         p, pd, pdd = ev(self.p0, self.p_dot0, self.p1)
         e, ed, edd = ev(self.eta0, self.eta_dot0, self.eta1)

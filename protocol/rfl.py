@@ -20,7 +20,6 @@ import numpy as np
 
 from .airframe import Airframe
 from .model import (
-    body_rate_matrix,
     BODY_RATE,
     BODY_VEL,
     EULER,

@@ -205,7 +205,6 @@ class SitlServer:
     def _schedule_vehicle(self, i: int) -> None:
         """(Re)build vehicle i's stream schedule from its rate parameters (old entries lapse)."""
         fc = self.swarm.fcs[i]
-        now = self.swarm.time_s
         dt = self.swarm.dt_s
         for name in LINKS:
             for msg_id in [mavlink.MAVLINK_MSG_ID_HEARTBEAT] + [m for m, _, _ in STREAMS.values()]:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.formation import (ConstantFormation, EntryBlend, KeyframeFormation, QuinticTransfer,
-                                         RotatingPolygon, quintic_blend)
+from triswarm.protocol.formation import (Blend, ConstantFormation, EntryBlend, KeyframeFormation, QuinticTransfer,
+                                         RelativeTo, Rejoin, RotatingPolygon, quintic_blend, rejoin_duration)
 
 
 def assert_exact_derivative(formation, times, h=1e-5, tol=1e-6):
@@ -34,6 +34,7 @@ def keyframes():
     lambda: EntryBlend(RotatingPolygon.paper(6), np.tile([1.0, -2.0, 0.0], (6, 1)), np.zeros(3), 1.0, 9.0),
     lambda: ConstantFormation(np.ones((4, 3)), np.zeros((4, 3))),
     lambda: QuinticTransfer([[1, 2, 3]], [[10, -4, 1]], [[6, 0, 0]], [[0.5, -0.5, 1]], [[0, 0.3, 0]], [[0, 0, 1]], 2.0, 4.0),
+    lambda: Rejoin(braking_from_polygon(3.0), RotatingPolygon.paper(6), 4.0, 6.0),
 ])
 def test_offsets_have_exact_derivatives(make):
     assert_exact_derivative(make(), np.linspace(0.3, 19.7, 60))
@@ -98,3 +99,59 @@ def test_quintic_transfer_matches_its_boundary_conditions():
     assert np.allclose(k0.eta_dot, [[0, 0.3, 0]])
     assert np.allclose(k1.p, [[6, 0, 0]]) and np.allclose(k1.p_dot, 0) and np.allclose(k1.p_ddot, 0, atol=1e-12)
     assert np.allclose(f.kinematics(9.0).p, [[6, 0, 0]]) and np.allclose(f.kinematics(9.0).eta, [[0, 0, 1]])
+
+
+def braking_from_polygon(t0: float, n: int = 6) -> QuinticTransfer:
+    """Every agent of the paper's polygon braking to a stop from t0 (10 m/s tangential), as offsets."""
+    k = RotatingPolygon.paper(n).kinematics(t0)
+    stop = k.p + k.p_dot * 2.5
+    return QuinticTransfer(k.p, k.p_dot, stop, k.eta, k.eta_dot, k.eta, t0, 5.0)
+
+
+def test_rejoin_continues_the_source_and_ends_on_the_target():
+    target = RotatingPolygon.paper(6)
+    source = braking_from_polygon(3.0)
+    f = Rejoin(source, target, 4.0, 6.0)
+    a, b = f.kinematics(4.0), source.kinematics(4.0)
+    for name in ("p", "p_dot", "eta", "eta_dot"):
+        assert np.allclose(getattr(a, name), getattr(b, name), atol=1e-9), name
+    for name in ("p", "p_dot", "p_ddot", "eta", "eta_dot", "eta_ddot"):
+        assert np.allclose(getattr(f.kinematics(10.0), name), getattr(target.kinematics(10.0), name), atol=1e-9), name
+    assert np.allclose(f.kinematics(3.5).p, source.kinematics(3.5).p)  # the source before t0
+    assert np.allclose(f.kinematics(12.0).p, target.kinematics(12.0).p)
+
+
+def test_a_short_hold_costs_a_short_excursion():
+    """Braking for 0.1 s from 10 m/s on a 10 m circle, then back: 1 m/s off the formation's velocity,
+    so the way back strays a quarter metre (0.2 v T over T = 1 s), where a blend that follows the
+    source (which goes on braking) strays metres away."""
+    target = RotatingPolygon.paper(6)
+    source = braking_from_polygon(3.0)
+    t = np.linspace(3.1, 9.1, 601)
+    rejoin = Rejoin(source, target, 3.1, 1.0)
+    dp, dv = (np.linalg.norm(e, axis=1).max() for e in rejoin.initial_error)
+    assert dp < 0.06 and 0.9 < dv < 1.1
+    away = lambda f: max(np.linalg.norm(f.kinematics(x).p - target.kinematics(x).p, axis=1).max() for x in t)  # noqa: E731
+    assert away(rejoin) < 0.3
+    assert away(Blend(source, target, 3.1, 6.0)) > 3.0
+
+
+@pytest.mark.parametrize("dp, dv", [(0.0, 1.0), (1.0, 0.0), (15.0, 10.0), (0.01, 0.01)])
+def test_rejoin_duration_bounds_the_peak_acceleration(dp, dv):
+    T = rejoin_duration(dp, dv, accel_m_s2=4.0, min_s=1.0)
+    rejoin = Rejoin(QuinticTransfer([[dp, 0, 0]], [[dv, 0, 0]], [[dp, 0, 0]], [[0, 0, 0]], [[0, 0, 0]], [[0, 0, 0]], 0, 1e-3),
+                    ConstantFormation(np.zeros((1, 3)), np.zeros((1, 3))), 0.0, T)
+    peak = max(abs(rejoin.kinematics(x).p_ddot[0, 0]) for x in np.linspace(0, T, 2001))
+    assert T >= 1.0 and peak <= 4.0 * 1.6  # each error alone within the limit; together within 60 % of it
+    if max(dp, dv) > 0.5:
+        assert peak >= 4.0 * 0.9  # and no slower than needed
+
+
+def test_rejoin_relative_to_a_moving_leader():
+    """An absolute hold written relative to a leader, then rejoined: still continuous."""
+    leader = QuinticTransfer([[5, -5, 0]], [[1, 0, 0]], [[9, -5, 0]], [[0, 0, 0]], [[0, 0, 0]], [[0, 0, 0]], 0.0, 8.0)
+    hold = QuinticTransfer(np.tile([[10, 0, 20]], (6, 1)), np.tile([[0, 3, 0]], (6, 1)), np.tile([[10, 3, 20]], (6, 1)),
+                           np.zeros((6, 3)), np.zeros((6, 3)), np.zeros((6, 3)), 1.0, 2.0)
+    f = Rejoin(RelativeTo(hold, leader), RotatingPolygon.paper(6), 2.0, 5.0)
+    assert_exact_derivative(f, np.linspace(1.53, 7.53, 25))  # (the acceleration steps at t0 = 2 s)
+    assert np.allclose(f.kinematics(2.0).p, hold.kinematics(2.0).p - leader.kinematics(2.0).p)

@@ -3,7 +3,6 @@
 Each run flies 50 s from rest on the ground; errors are measured on the plant's true state against
 x0 + h_i(t) over [25 s, 50 s]."""
 
-import dataclasses
 
 import numpy as np
 import pytest

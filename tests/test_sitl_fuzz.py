@@ -13,7 +13,7 @@ import numpy as np
 from pymavlink import mavutil
 from pymavlink.generator.mavcrc import x25crc
 
-from triswarm.protocol.mavlink import mavlink, new_codec
+from triswarm.protocol.mavlink import new_codec
 
 from .sitl_helpers import command, connect, sitl_process
 

@@ -2,11 +2,14 @@
 `triswarm-companion` per drone flying the paper's plan (resized for N drones), real processes on
 loopback, 200 Hz control.
 
-For the six-drone stack it reports, over the formation phase, each companion's control-loop jitter
-p99 (interval between telemetry samples it acted on, minus 5 ms), telemetry-to-command latency
-p50/p99 (datagram received -> command handed to the kernel), neighbour estimate age p50/p99
-(published -> used), CPU (share of one core since its first tick) and deadline misses. Then it
-looks for the largest swarm the machine runs with no more than 0.1 % deadline misses.
+For the six-drone stack it reports, from arming to the end of the run, the worst companion's
+control-loop jitter p99 (|interval between consecutive commands - 5 ms|), telemetry-to-command
+latency p50/p99 (the kernel's receive time of the telemetry datagram -> command handed to the
+kernel), neighbour estimate age p50/p99 (published -> used), CPU (all threads, share of one core
+since its first tick) and deadline misses (a command later than one period after its telemetry, or
+a sample never acted on because the loop was late). Samples the flight controller sent late and
+together ("superseded") are counted apart: that is the SITL's lag, not the loop's. Then it looks
+for the largest swarm the machine runs with no more than 0.1 % deadline misses.
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ def _toml(v) -> str:
 def run(n: int, seconds: float) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        with Stack(plan_for(n, tmp), tmp / "run", n, start_delay_s=max(6.0, 0.4 * n)) as stack:
+        with Stack(plan_for(n, tmp), tmp / "run", n, start_delay_s=10.0 + 0.5 * n) as stack:
             time.sleep(max(0.0, stack.start_at - time.time()) + seconds)
         return [stack.stats(str(i)) for i in range(1, n + 1)]
 
@@ -65,7 +68,9 @@ def summary(stats: list[dict]) -> dict:
         vals = [lp[key] for lp in loops if lp.get(key) is not None]
         return max(vals) if vals else float("nan")
 
+    superseded = sum(lp.get("superseded_samples", 0) for lp in loops)
     return {"ticks": ticks, "miss_fraction": misses / max(ticks + misses, 1),
+            "superseded_fraction": superseded / max(ticks + superseded, 1),
             "jitter_p99_ms": worst("jitter_p99_ms"), "latency_p50_ms": worst("latency_p50_ms"),
             "latency_p99_ms": worst("latency_p99_ms"), "nb_age_p50_ms": worst("neighbour_age_p50_ms"),
             "nb_age_p99_ms": worst("neighbour_age_p99_ms"), "cpu_max": worst("cpu_fraction"),
@@ -75,18 +80,19 @@ def summary(stats: list[dict]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=30.0, help="seconds of flight measured per run")
-    ap.add_argument("--sizes", default="12,18,24,30", help="swarm sizes tried for the largest real-time swarm")
+    ap.add_argument("--sizes", default="2,4,6,8,12,18,24", help="swarm sizes tried, in order, for the largest real-time swarm")
     args = ap.parse_args()
-    s = summary(run(6, args.seconds))
+    six = s = summary(run(6, args.seconds))
     print("six-drone stack (worst companion):")
     print(f"  control loop jitter p99      {s['jitter_p99_ms']:.3f} ms   (target < 1 ms)")
     print(f"  telemetry-to-command latency p50 {s['latency_p50_ms']:.3f} ms, p99 {s['latency_p99_ms']:.3f} ms   (target p99 < 2 ms)")
     print(f"  neighbour estimate age       p50 {s['nb_age_p50_ms']:.3f} ms, p99 {s['nb_age_p99_ms']:.3f} ms   (target p99 < 5 ms)")
     print(f"  CPU per companion            {100 * s['cpu_mean']:.1f} % mean, {100 * s['cpu_max']:.1f} % max of one core   (target < 10 %)")
-    print(f"  deadline misses              {100 * s['miss_fraction']:.3f} % of {s['ticks']} ticks")
-    largest = 6 if s["miss_fraction"] <= 0.001 else 0
+    print(f"  deadline misses              {100 * s['miss_fraction']:.3f} % of {s['ticks']} ticks "
+          f"(and {100 * s['superseded_fraction']:.3f} % of samples superseded: the SITL late)")
+    largest = 0
     for n in [int(x) for x in args.sizes.split(",")]:
-        s = summary(run(n, args.seconds))
+        s = six if n == 6 else summary(run(n, args.seconds))
         ok = s["miss_fraction"] <= 0.001
         print(f"  N = {n:3d}: deadline misses {100 * s['miss_fraction']:.3f} %, CPU {100 * s['cpu_mean']:.1f} % mean, "
               f"latency p99 {s['latency_p99_ms']:.2f} ms -> {'real time' if ok else 'too many misses'}", flush=True)

@@ -1,0 +1,132 @@
+"""Observers for whole-stack tests: a ground station on a companion's link (pymavlink, real UDP) and
+a Zenoh peer on the swarm's bus (a real session). Both record in background threads; both stop
+when their context ends."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import zenoh
+from pymavlink import mavutil
+
+from triswarm.companion.bus import peer_config
+from triswarm.protocol import metrics
+
+
+class GroundStation:
+    """A GCS on one companion's ground-station link: says hello at 1 Hz, records what it hears."""
+
+    def __init__(self, port: int, sysid: int = 255, compid: int = 190) -> None:
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=sysid,
+                                               source_component=compid)
+        self.messages: list[tuple[float, object]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> "GroundStation":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.conn.close()
+
+    def _run(self) -> None:
+        next_hello = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_hello:
+                self.send(self.conn.mav.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID,
+                                                         0, 0, 0))
+                next_hello = now + 1.0
+            msg = self.conn.recv_match(blocking=True, timeout=0.1)
+            if msg is not None and msg.get_type() != "BAD_DATA":
+                with self._lock:
+                    self.messages.append((time.time(), msg))
+
+    def send(self, msg) -> None:
+        with self._lock:
+            self.conn.mav.send(msg)
+
+    def heard(self, type_: str, **where) -> list:
+        with self._lock:
+            found = [m for _, m in self.messages if m.get_type() == type_]
+        return [m for m in found if all(_field(m, k) == v for k, v in where.items())]
+
+    def wait_for(self, type_: str, timeout_s: float, **where) -> list:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            found = self.heard(type_, **where)
+            if found:
+                return found
+            time.sleep(0.05)
+        return self.heard(type_, **where)
+
+
+def _field(m, name):
+    if name == "srcSystem":
+        return m.get_srcSystem()
+    if name == "srcComponent":
+        return m.get_srcComponent()
+    value = getattr(m, name)
+    return value.decode(errors="replace") if isinstance(value, bytes) else value
+
+
+class BusObserver:
+    """A Zenoh peer connected to every agent of a stack started with default peers on loopback."""
+
+    def __init__(self, swarm: str, zenoh_base: int, n: int) -> None:
+        connect = [f"tcp/127.0.0.1:{zenoh_base + i}" for i in range(1, n + 1)]
+        self.swarm = swarm
+        self.session = zenoh.open(peer_config([], connect))
+        self.statuses: list[tuple[float, int, str, str]] = []   # (time, agent, status, reason)
+        self.health: dict[int, list[dict]] = defaultdict(list)
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(f"triswarm/{swarm}/agent/*/status", self._on_status),
+            self.session.declare_subscriber(f"triswarm/{swarm}/agent/*/health", self._on_health),
+        ]
+
+    def __enter__(self) -> "BusObserver":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.session.close()
+
+    def _on_status(self, sample) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        with self._lock:
+            self.statuses.append((time.time(), int(msg["agent"]), msg["status"], msg.get("reason", "")))
+
+    def _on_health(self, sample) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        with self._lock:
+            self.health[int(msg["agent"])].append(msg)
+
+    def put(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload)
+
+    def token(self, key: str):
+        """Declare a liveliness token (undeclared when the session closes)."""
+        return self.session.liveliness().declare_token(key)
+
+
+def judge(plan, recorder, start_unix: float, t_from: float, t_to: float, drones=None,
+          position_bound_m: float = 0.10, attitude_bound_rad: float = 0.02):
+    """Worst position and attitude errors of ``drones`` (numbers from 1; all by default) against
+    x0 + h_i(t) over [t_from, t_to] of plan time, from the flight controllers' own telemetry."""
+    t, pos, eta = recorder.arrays(start_unix, t_from=t_from, t_to=t_to)
+    pe, ae = metrics.formation_errors(plan, t, pos, eta)
+    cols = np.arange(plan.n_agents) if drones is None else np.asarray(drones) - 1
+    worst_p, worst_a = pe[:, cols].max(axis=0), ae[:, cols].max(axis=(0, 2))
+    report = {int(c) + 1: (round(float(p), 4), round(float(a), 4)) for c, p, a in zip(cols, worst_p, worst_a)}
+    ok = bool((worst_p <= position_bound_m).all() and (worst_a <= attitude_bound_rad).all())
+    return ok, report

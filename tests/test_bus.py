@@ -1,0 +1,171 @@
+"""The companions' Zenoh bus with real Zenoh sessions on loopback: estimates arrive exactly, an
+awaited estimate wakes the loop by itself, garbage in the key space is dropped and counted by
+reason, and a closed peer's liveliness goes."""
+
+import asyncio
+import json
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from triswarm.companion.bus import Bus, default_config, peer_config, tune
+from triswarm.gcs.stack import free_ports
+from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
+
+PLAN = 0x5EED
+XI = np.linspace(-1.0, 1.0, 12)
+
+
+async def until(predicate, timeout_s: float, buses=()) -> bool:
+    """Drain the buses every 10 ms until predicate() (bounded in time)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for b in buses:
+            b.drain()
+        if predicate():
+            return True
+        await asyncio.sleep(0.01)
+    return predicate()
+
+
+def estimate(agent: int, seq: int, t_plan: float, plan: int = PLAN, xi=XI) -> bytes:
+    return encode_estimate(Estimate(agent, plan, seq, time.time(), t_plan, AgentStatus.FLYING, np.asarray(xi, float)))
+
+
+@pytest.fixture
+def swarm():
+    return f"test-{uuid.uuid4().hex[:8]}"
+
+
+def test_estimates_status_garbage_and_liveliness(swarm):
+    base = free_ports(3, contiguous=True)[0] - 1
+
+    async def scenario():
+        loop = asyncio.get_running_loop()
+        one = Bus(swarm, 1, PLAN, frozenset(), 3)
+        two = Bus(swarm, 2, PLAN, frozenset({1}), 3)
+        woke = []
+        two.on_estimate = lambda: woke.append(time.monotonic())
+        one.open(default_config(1, 3, base), loop)
+        two.open(default_config(2, 3, base), loop)
+        # a third party on the same bus (agent 3's port), for garbage
+        other = zenoh.open(peer_config([f"tcp/127.0.0.1:{base + 3}"],
+                                       [f"tcp/127.0.0.1:{base + 1}", f"tcp/127.0.0.1:{base + 2}"]))
+        try:
+            assert await until(lambda: 1 in two.alive, 10.0, [one, two]), "agent 2 never saw agent 1's liveliness"
+
+            # a valid estimate arrives bit for bit, with its header
+            assert await until(lambda: (one.publish_estimate(XI, 1.0, AgentStatus.FLYING) or True)
+                               and two.neighbours[1].heard, 10.0, [two])
+            nb = two.neighbours[1]
+            np.testing.assert_array_equal(nb.xi, XI)
+            assert nb.t_plan_s == 1.0 and nb.status == AgentStatus.FLYING and 1 <= nb.seq <= one.seq
+
+            # while the loop waits, an estimate wakes it by itself (no drain called here)
+            two.waiting, woke[:] = True, []
+            t0 = time.monotonic()
+            one.publish_estimate(XI * 2, 2.0, AgentStatus.FLYING)
+            deadline = time.monotonic() + 2.0
+            while not woke and time.monotonic() < deadline:
+                await asyncio.sleep(0.001)
+            two.waiting = False
+            assert woke, "an awaited estimate did not wake the loop"
+            assert woke[0] - t0 < 0.5
+            assert two.ready([1], 2.0, 0.0) and not two.ready([1], 2.1, 0.0)
+            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 2)
+
+            # garbage on agent 1's keys: every kind dropped and counted, none taken
+            before = two.counts()
+            key = estimate_key(swarm, 1)
+            good = estimate(1, 10_000, 3.0)
+            garbage = {
+                "drop_undecodable": [b"", b"hello", good[:-1], bytes([7]) + good[1:],  # size, size, size, version
+                                     estimate(1, 10_001, 3.0, xi=[np.nan] * 12)],
+                "drop_unknown_agent": [estimate(2, 10_002, 3.0), estimate(3, 10_003, 3.0)],  # on 1's key
+                "drop_other_plan": [estimate(1, 10_004, 3.0, plan=PLAN + 1)],
+                "drop_old": [estimate(1, 10_005, 0.5)],  # refers to an earlier instant
+            }
+            for payloads in garbage.values():
+                for p in payloads:
+                    other.put(key, p)
+            other.put(status_key(swarm, 1), b"{not json")
+            other.put(status_key(swarm, 1), json.dumps({"agent": 2, "plan": PLAN, "status": "HOLDING"}).encode())
+            token = other.liveliness().declare_token(alive_key(swarm, "intruder"))
+            expected = {k: len(v) for k, v in garbage.items()} | {"drop_bad_status": 2, "drop_bad_liveliness": 1}
+
+            def moved():
+                now = two.counts()
+                return all(now.get(k, 0) - before.get(k, 0) >= n for k, n in expected.items())
+
+            assert await until(moved, 10.0, [two]), f"counters {two.counts()} (before {before})"
+            after = two.counts()
+            for k, n in expected.items():
+                assert after.get(k, 0) - before.get(k, 0) == n, k
+            assert after["estimates"] == before["estimates"]  # nothing taken
+            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 2)
+            assert two.statuses.get(1) != AgentStatus.HOLDING
+            token.undeclare()
+
+            # a valid estimate still gets through, and a restarted sender (sequence from 1 again,
+            # plan time going on) is not mistaken for an old one
+            one.seq = 0
+            assert await until(lambda: (one.publish_estimate(XI * 3, 4.0, AgentStatus.FLYING) or True)
+                               and two.neighbours[1].t_plan_s == 4.0, 10.0, [two])
+            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 3)
+
+            # status: agent 1 says it holds
+            one.publish_status(AgentStatus.HOLDING, "test")
+            assert await until(lambda: two.statuses.get(1) == AgentStatus.HOLDING, 10.0, [two])
+
+            # agent 1 goes away: its liveliness goes within the lease (1 s) and some slack
+            one.close()
+            t_closed = time.monotonic()
+            assert await until(lambda: 1 not in two.alive, 5.0, [two])
+            assert time.monotonic() - t_closed < 3.0
+        finally:
+            other.close()
+            one.close()
+            two.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 60.0))
+
+
+DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "zenoh"
+
+
+def deploy_config(name: str, **endpoints: list[str]) -> zenoh.Config:
+    """A shipped configuration with its endpoints pointed at loopback ports of this test."""
+    cfg = zenoh.Config.from_file(str(DEPLOY / name))
+    for key, value in endpoints.items():
+        cfg.insert_json5(f"{key}/endpoints", json.dumps(value))
+    return tune(cfg)
+
+
+def test_shipped_configs_client_through_a_router(swarm):
+    """deploy/zenoh: two companions in client mode reach each other through a router."""
+    port = free_ports(1)[0]
+    here = [f"tcp/127.0.0.1:{port}", f"udp/127.0.0.1:{port}"]
+    zenoh.Config.from_file(str(DEPLOY / "companion-peer.json5"))  # parses
+
+    async def scenario():
+        loop = asyncio.get_running_loop()
+        router = zenoh.open(deploy_config("router.json5", listen=here))
+        one = Bus(swarm, 1, PLAN, frozenset(), 2)
+        two = Bus(swarm, 2, PLAN, frozenset({1}), 2)
+        try:
+            one.open(deploy_config("companion-client.json5", connect=here), loop)
+            two.open(deploy_config("companion-client.json5", connect=here), loop)
+            assert await until(lambda: 1 in two.alive, 10.0, [one, two])
+            assert await until(lambda: (one.publish_estimate(XI, 5.0, AgentStatus.FLYING) or True)
+                               and two.neighbours[1].heard, 10.0, [two])
+            np.testing.assert_array_equal(two.neighbours[1].xi, XI)
+        finally:
+            one.close()
+            two.close()
+            router.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 60.0))

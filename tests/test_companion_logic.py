@@ -1,0 +1,118 @@
+"""Pure logic of the companion: MAVLink routing rules, loop-health statistics."""
+
+import math
+
+import numpy as np
+import pytest
+
+from triswarm.companion.health import LoopHealth, Window
+from triswarm.companion.links import Router
+from triswarm.protocol.mavlink import mavlink, new_codec
+
+
+def frame(msg, sysid: int, compid: int):
+    """The message as a receiver sees it (parsed from real MAVLink 2 bytes)."""
+    data = msg.pack(new_codec(sysid, compid))
+    parsed = new_codec(99, 99).parse_buffer(data)
+    assert parsed and len(parsed) == 1
+    return parsed[0]
+
+
+class Link:
+    def __init__(self, name):
+        self.name = name
+
+    def __repr__(self):
+        return self.name
+
+
+@pytest.fixture
+def routed():
+    """Companion of system 3 (component 191) between its flight controller and a ground station."""
+    fc, gcs = Link("fc"), Link("gcs")
+    r = Router(3, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
+    r.learn(fc, frame(mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3), 3, 1))
+    r.learn(gcs, frame(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3), 255, 190))
+    return r, fc, gcs
+
+
+def test_broadcasts_go_everywhere_but_back(routed):
+    r, fc, gcs = routed
+    hb = frame(mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3), 3, 1)
+    assert r.destinations(fc, hb, [fc, gcs]) == [gcs]
+    assert r.for_me(hb)  # a broadcast is also for this component
+    req = frame(mavlink.MAVLink_param_request_list_message(0, 0), 255, 190)
+    assert r.destinations(gcs, req, [fc, gcs]) == [fc] and r.for_me(req)
+
+
+def test_targeted_messages_go_where_the_target_was_heard(routed):
+    r, fc, gcs = routed
+    to_autopilot = frame(mavlink.MAVLink_param_request_list_message(3, 1), 255, 190)
+    assert r.destinations(gcs, to_autopilot, [fc, gcs]) == [fc]
+    assert not r.for_me(to_autopilot)
+    to_gcs = frame(mavlink.MAVLink_command_ack_message(400, 0, 0, 0, 255, 190), 3, 1)
+    assert r.destinations(fc, to_gcs, [fc, gcs]) == [gcs]
+    to_system = frame(mavlink.MAVLink_param_request_list_message(3, 0), 255, 190)  # every component of 3
+    assert r.destinations(gcs, to_system, [fc, gcs]) == [fc] and r.for_me(to_system)
+
+
+def test_messages_for_this_component_stay_here(routed):
+    r, fc, gcs = routed
+    mine = frame(mavlink.MAVLink_param_request_list_message(3, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER), 255, 190)
+    assert r.destinations(gcs, mine, [fc, gcs]) == [] and r.for_me(mine)
+
+
+def test_unknown_targets_are_not_forwarded(routed):
+    r, fc, gcs = routed
+    other_system = frame(mavlink.MAVLink_param_request_list_message(7, 1), 255, 190)
+    assert r.destinations(gcs, other_system, [fc, gcs]) == []
+    assert not r.for_me(other_system)
+    unheard_component = frame(mavlink.MAVLink_param_request_list_message(3, 100), 255, 190)
+    assert r.destinations(gcs, unheard_component, [fc, gcs]) == []
+
+
+def test_window_percentiles_match_numpy_within_two_percent():
+    rng = np.random.default_rng(7)
+    w = Window(n=50)
+    values = rng.lognormal(mean=math.log(1e-3), sigma=1.0, size=20000)
+    for v in values:
+        w.add(float(v))
+    for q in (1, 50, 90, 99, 99.9):
+        exact = np.percentile(values, q, method="inverted_cdf")  # the same definition: the smallest value with rank >= q %
+        assert w.percentile(q, recent=False) == pytest.approx(exact, rel=0.011)  # half a bin
+    assert w.percentile(50) == pytest.approx(np.percentile(values[-50:], 50))  # the recent window is exact
+    assert len(w.recent) == 50 and w.count == 20000
+    assert Window().percentile(99, recent=False) != Window().percentile(99, recent=False)  # nan when empty
+
+
+def test_loop_health_counts_misses_not_the_flight_controllers_lag():
+    h = LoopHealth(0.005)
+    h.skipped(missed=20)  # while setting up, before the first command: not a miss
+    assert h.deadline_misses == 0
+    t = 1000.0
+    for k in range(10):
+        h.tick(t + 0.005 * k, t + 0.005 * k + 0.0004)
+    h.tick(t + 0.05, t + 0.05 + 0.006)  # answered after more than one period: a miss
+    h.skipped(missed=2, superseded=3)
+    assert h.ticks == 11
+    assert h.deadline_misses == 3
+    assert h.skipped_samples == 5 and h.superseded_samples == 3
+    s = h.summary()
+    assert s["latency_p50_ms"] == pytest.approx(0.4, rel=0.02)
+    assert s["jitter_p99_ms"] == pytest.approx(5.6, rel=0.02)  # commands 10.6 ms apart: 5.6 ms late
+
+
+def test_mission_state_survives_a_restart_and_a_bad_file(tmp_path, paper_spec):
+    from triswarm.companion.state import Mission, StateStore
+    from triswarm.protocol.codec import plan_id
+
+    store = StateStore(tmp_path / "state")
+    assert store.load() is None and store.problem is None
+    m = Mission(paper_spec, plan_id(paper_spec), 3, start_unix_s=1.8e9, phase="flying")
+    store.save(m)
+    assert StateStore(tmp_path / "state").load() == m
+    assert [p.name for p in (tmp_path / "state").iterdir()] == ["mission.json"]  # no temporary left behind
+    store.path.write_text('{"plan_spec": {}, "agen')  # a torn write (what the rename prevents)
+    fresh = StateStore(tmp_path / "state")
+    assert fresh.load() is None and "unusable saved mission" in fresh.problem
+    assert StateStore(None).load() is None  # no folder: nothing kept, nothing to fail

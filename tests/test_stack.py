@@ -1,0 +1,161 @@
+"""The whole stack on this machine, in real time: `triswarm sitl up -n 6` and six `triswarm-companion`
+processes flying the paper's plan over MAVLink (UDP) and Zenoh (peers on loopback). The formation
+is judged from the flight controllers' own telemetry (their ground-station links), never from what
+the companions report."""
+
+import math
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from triswarm.gcs.recorder import Recorder
+from triswarm.gcs.scenarios import load_plan
+from triswarm.gcs.stack import Stack
+from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
+from triswarm.protocol.mavlink import CustomMode
+
+from .conftest import PAPER_PLAN_FILE
+from .stack_helpers import BusObserver, GroundStation, judge
+
+pytestmark = pytest.mark.slow
+SWARM = "paper-hexagon"  # the plan's name: the companions' default swarm
+
+
+def sleep_until(t_unix: float, stack: Stack) -> None:
+    """Sleep until a Unix time, checking every 0.5 s that every process of the stack still runs."""
+    while (left := t_unix - time.time()) > 0:
+        time.sleep(min(left, 0.5))
+        dead = [name for name, up in stack.alive().items() if not up]
+        assert not dead, f"{dead} exited early: {[stack.log(n)[-2000:] for n in dead]}"
+
+
+def garbage(plan_id_other: int) -> list[tuple[str, bytes]]:
+    """Estimates an agent must drop (undecodable, another plan, an impostor) and bad statuses."""
+    xi = np.zeros(12)
+    out = []
+    for i in range(1, 7):
+        key = estimate_key(SWARM, i)
+        out += [(key, b""), (key, b"\xff" * 124), (key, b"x" * 500),
+                (key, encode_estimate(Estimate(i, plan_id_other, 1, time.time(), 1e9, AgentStatus.FLYING, xi))),
+                (key, encode_estimate(Estimate(99, plan_id_other, 1, time.time(), 1e9, AgentStatus.FLYING, xi))),
+                (status_key(SWARM, i), b"\x00not json")]
+    return out
+
+
+def test_paper_case_study_whole_stack(tmp_path):
+    plan = load_plan(str(PAPER_PLAN_FILE))
+    with Stack(PAPER_PLAN_FILE, tmp_path, 6, start_delay_s=12.0) as stack, Recorder(stack.manifest) as rec, \
+            BusObserver(SWARM, stack.zenoh_base, 6) as bus, GroundStation(stack.gcs_ports[2]) as gcs:
+        start = stack.start_at
+        # the ground station sees the autopilot and the companion of system 3 through the companion
+        assert gcs.wait_for("HEARTBEAT", 15.0, srcSystem=3, srcComponent=1), "no autopilot heartbeat via the companion"
+        hb = gcs.wait_for("HEARTBEAT", 5.0, srcSystem=3, srcComponent=191)
+        assert hb and hb[-1].type == 18  # MAV_TYPE_ONBOARD_CONTROLLER
+        # the companion's parameters and commands (component 191) ...
+        gcs.send(gcs.conn.mav.param_request_list_encode(3, 191))
+        # ... and the autopilot's, through the companion
+        gcs.send(gcs.conn.mav.param_request_read_encode(3, 1, b"MOT_MAX_RPM", -1))
+        gcs.send(gcs.conn.mav.param_set_encode(3, 191, b"NB_TIMEOUT_S", 50.0, 9))  # out of range: refused
+        gcs.send(gcs.conn.mav.command_long_encode(3, 191, 512, 0, 0, 0, 0, 0, 0, 0, 0))  # REQUEST_MESSAGE HEARTBEAT
+        gcs.send(gcs.conn.mav.command_long_encode(3, 191, 400, 0, 1, 0, 0, 0, 0, 0, 0))  # ARM: not the companion's job
+
+        sleep_until(start + 20.0, stack)
+        for key, payload in garbage(plan_id_other=1):
+            bus.put(key, payload)
+        bus.token(alive_key(SWARM, "x"))  # liveliness of no agent
+        sleep_until(start + 50.0, stack)
+
+    # the formation, from the flight controllers' telemetry
+    ok, worst = judge(plan, rec, start, 25.0, 50.0)
+    assert ok, f"worst (position m, attitude rad) per drone over [25, 50] s: {worst}"
+
+    # every companion stopped cleanly on SIGTERM, never failed a tick, and dropped the garbage
+    for i in range(1, 7):
+        assert stack.procs[f"companion-{i}"].returncode == 0, stack.log(f"companion-{i}")[-3000:]
+        s = stack.stats(str(i))
+        assert s["tick_errors"] == 0
+        z = s["zenoh"]
+        assert z.get("drop_bad_status", 0) >= 6 and z.get("drop_bad_liveliness", 0) >= 1, z
+        # every agent listens to someone's estimates (its in-neighbours over the three graphs)
+        assert z.get("drop_undecodable", 0) >= 3 and z.get("drop_unknown_agent", 0) >= 1, z
+        assert z.get("drop_other_plan", 0) >= 1, z
+        assert s["loop"]["ticks"] > 0.9 * 200 * 45  # ~200 Hz from arming to the end
+
+    # loop health on Zenoh (1 Hz) and MAVLink, at the control rate
+    for i in range(1, 7):
+        reports = [h for h in bus.health[i] if h["phase"] == "flying"]
+        assert len(reports) >= 30, f"agent {i}: {len(reports)} health reports while flying"
+        rates = [h["loop_rate_hz"] for h in reports[5:]]
+        assert np.median(rates) == pytest.approx(200.0, rel=0.05)
+        assert set(reports[-1]["neighbour_age_ms"]) and reports[-1]["formation_error_m"] < 0.10
+    names = {m.name for m in gcs.heard("NAMED_VALUE_FLOAT", srcSystem=3, srcComponent=191)}
+    assert {"LOOP_HZ", "JIT_P99MS", "LAT_P99MS", "MISSES", "TLM_AGEMS", "FORM_ERRM"} <= names
+
+    # what the ground station got back
+    params = {m.param_id: m.param_value for m in gcs.heard("PARAM_VALUE", srcSystem=3, srcComponent=191)}
+    assert params["CTRL_RATE_HZ"] == 200.0 and params["NB_TIMEOUT_S"] == pytest.approx(0.2)  # 50 refused
+    assert params["COUPLING_C"] == pytest.approx(plan.design.c, rel=1e-6)
+    assert gcs.heard("PARAM_VALUE", srcSystem=3, srcComponent=1, param_id="MOT_MAX_RPM")
+    acks = {m.command: m.result for m in gcs.heard("COMMAND_ACK", srcSystem=3, srcComponent=191)}
+    assert acks == {512: 0, 400: 3}  # accepted; unsupported
+    texts = [m.text for m in gcs.heard("STATUSTEXT", srcSystem=3, srcComponent=191)]
+    assert any("NB_TIMEOUT_S must be within" in t for t in texts), texts
+
+
+def test_companion_killed_and_restarted(tmp_path):
+    """Kill companion 2 at t = 30 s (two-chain in force: a spanning tree remains), keep it dead
+    through the triangles (35-40 s: agent 3 hears only agent 2 and must hold), restart it at 40 s
+    (reverse two-chain: agent 3 has a path again and rejoins)."""
+    plan = load_plan(str(PAPER_PLAN_FILE))
+    with Stack(PAPER_PLAN_FILE, tmp_path, 6, start_delay_s=12.0) as stack, Recorder(stack.manifest) as rec, \
+            BusObserver(SWARM, stack.zenoh_base, 6) as bus, GroundStation(stack.gcs_ports[2]) as gcs3:
+        start = stack.start_at
+        sleep_until(start + 30.0, stack)
+        stack.kill_companion(2, signal.SIGKILL)
+        t_kill = time.time()
+        while time.time() < start + 40.0:
+            time.sleep(0.2)
+            alive = {k: v for k, v in stack.alive().items() if k != "companion-2"}
+            assert all(alive.values()), alive
+        stack.start_companion(2)
+        sleep_until(start + 60.0, stack)
+
+    # the vehicle of the dead companion: failsafe hold within FS_TIMEOUT (0.3 s) and a heartbeat, then land
+    modes = [(t - t_kill, mode) for t, mode, armed in rec.modes[2] if t > t_kill - 1.0]
+    hold = [dt for dt, mode in modes if mode == CustomMode.HOLD]
+    land = [dt for dt, mode in modes if mode == CustomMode.LAND]
+    assert hold and 0.0 < hold[0] < 1.5, modes
+    assert land and 4.0 < land[0] - hold[0] < 7.0, modes
+    assert any(mode == CustomMode.EXTERNAL and dt > 10.0 for dt, mode in modes), f"restart did not take over: {modes}"
+
+    # the five others keep the formation while a spanning tree remains (two-chain, 30-35 s)
+    ok, worst = judge(plan, rec, start, 31.0, 35.0, drones=[1, 3, 4, 5, 6])
+    assert ok, f"30-35 s without agent 2: {worst}"
+    # triangles (35-40 s): agent 3 has no path to the leader: it holds and says so; the rest fly on
+    ok, worst = judge(plan, rec, start, 31.0, 40.0, drones=[1, 4, 5, 6])
+    assert ok, f"30-40 s, agents 1, 4, 5, 6: {worst}"
+    holding = [(t - start, reason) for t, agent, status, reason in bus.statuses if agent == 3 and status == "HOLDING"]
+    assert holding and all(34.5 < t < 40.5 for t, _ in holding), holding
+    assert "no path to the leader in triangles" in holding[0][1]
+    texts = [(t - start, m.text) for t, m in gcs3.messages if m.get_type() == "STATUSTEXT" and m.get_srcComponent() == 191]
+    assert any("holding" in text and 34.5 < t < 40.5 for t, text in texts), texts
+    assert any("in formation" in text and 39.5 < t < 41.0 for t, text in texts), texts  # path back at 40 s
+    assert _braked(rec, start, drone=3), "agent 3 did not brake to a stop while holding"
+
+    # everyone back in formation, the restarted agent 2 included (its way back from the failsafe
+    # landing, some 15 m and 10 m/s off the formation, takes about 10 s at REJOIN_ACCEL = 4 m/s^2)
+    ok, worst = judge(plan, rec, start, 54.0, 60.0)
+    assert ok, f"54-60 s after the restart: {worst}"
+    stats = stack.stats("2")
+    assert stats["tick_errors"] == 0
+    assert "resuming plan after restart" in stack.log("companion-2")
+
+
+def _braked(rec, start, drone: int) -> bool:
+    """Whether the drone's speed fell while it held (35-40 s): from about 10 m/s in formation."""
+    t, pos, _ = rec.arrays(start, t_from=34.0, t_to=40.0)
+    v = np.linalg.norm(np.diff(pos[:, drone - 1], axis=0), axis=1) / np.diff(t)
+    early, late = v[(t[1:] > 34.0) & (t[1:] < 35.0)], v[t[1:] > 39.5]
+    return bool(early.mean() > 5.0 and late.mean() < 0.5 * early.mean() and math.isfinite(late.mean()))
