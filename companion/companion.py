@@ -33,11 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from triswarm.protocol import model
-from triswarm.protocol.agent import Reference, protocol_input, reference_at
+from triswarm.protocol.agent import Reference, no_leader, pinned_input, protocol_input, reference_at
 from triswarm.protocol.codec import AgentStatus, plan_id
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.formation import Formation, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
-from triswarm.protocol.graph import Topology, reachable_within
+from triswarm.protocol.graph import Topology
 from triswarm.protocol.mavlink import (COMP_ONBOARD, attitude_to_paper, encode_actuators, local_ned_to_paper,
                                        mavlink, rates_to_paper)
 from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
@@ -599,13 +599,13 @@ class Companion:
         """Holding: pinned to its own absolute reference (the braking trajectory), no neighbours;
         back to the formation as soon as a path from the leader returns."""
         i = self.agent - 1
-        ref = reference_at(self._design, self._hold.offsets, _no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s,
+        ref = reference_at(self._design, self._hold.offsets, no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s,
                            rows=[i])
         self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
         present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
         if self._has_path(self.plan.schedule.at(ref.t_p), present):
             self._rejoin(t_plan)
-        v = protocol_input(self._design, xhat - ref.h, np.zeros((1, 12)), np.zeros(1), np.ones(1), ref.x0, ref.gamma)
+        v = pinned_input(self._design, xhat - ref.h, ref.x0, ref.gamma)
         self._actuate(v, s)
 
     def _has_path(self, topo, present: tuple[bool, ...]) -> bool:
@@ -614,7 +614,7 @@ class Companion:
         key = (topo.name, present)
         found = self._paths.get(key)
         if found is None:
-            found = bool(reachable_within(topo, np.array(present))[self.agent - 1])
+            found = bool(topo.reachable_from_leader(np.array(present))[self.agent - 1])
             self._paths[key] = found
         return found
 
@@ -773,11 +773,6 @@ class Companion:
         if hasattr(self, "bus"):
             out["zenoh"] = self.bus.counts()
         return out
-
-
-def _no_leader(t_s: float):
-    z = np.zeros(12)
-    return z, z
 
 
 def default_start_time(now: float) -> float:

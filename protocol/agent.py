@@ -8,38 +8,16 @@ simulation as ``adjacency @ xi``).
 Continuous protocol, with xi_i = xhat_i - h_i:
     v_i      = c K ( sum_j a_ij (xi_j - xi_i) + g_i (x0 - xi_i) ) + gamma_i          (72)
     xhat_i'  = A_r xhat_i + B_r v_i + c F (y_i - C_r xhat_i)                            (73)
-The observer is discretised exactly (zero-order hold on v and y over one control period).
+The observer (73), discretised exactly, and the RFL run in ``controller.FormationController``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import control
 import numpy as np
 
 from .design import Design
-
-
-@dataclass(frozen=True)
-class DiscreteObserver:
-    """xhat[k+1] = Phi xhat[k] + Gamma_v v[k] + Gamma_y y[k] (ZOH of (73) over dt_s)."""
-
-    dt_s: float
-    Phi: np.ndarray
-    Gamma_v: np.ndarray
-    Gamma_y: np.ndarray
-
-    @classmethod
-    def from_design(cls, d: Design, dt_s: float) -> "DiscreteObserver":
-        cF = d.c * d.F
-        sys = control.ss(d.A_r - cF @ d.C_r, np.hstack([d.B_r, cF]), np.eye(12), np.zeros((12, 12)))
-        sysd = control.c2d(sys, dt_s, method="zoh")
-        B = np.asarray(sysd.B)
-        return cls(dt_s, np.asarray(sysd.A), B[:, :6].copy(), B[:, 6:].copy())
-
-    def step(self, xhat: np.ndarray, v: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return xhat @ self.Phi.T + v @ self.Gamma_v.T + y @ self.Gamma_y.T
 
 
 @dataclass(frozen=True)
@@ -75,3 +53,19 @@ def protocol_input(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degr
                    pinning: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
     """(72): v (N, 6) for agents with estimates-minus-offsets xi (N, 12)."""
     return d.c * consensus_error(xi, neighbour_sum, in_degree, pinning, x0) @ d.K.T + gamma
+
+
+_ORIGIN = np.zeros(12)
+_ORIGIN.setflags(write=False)
+
+
+def no_leader(t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The leader of absolute references (a flight controller's own, a companion's hold): at the
+    local origin, at rest. Use as ``reference_at(..., leader=no_leader, ...)``."""
+    return _ORIGIN, _ORIGIN
+
+
+def pinned_input(d: Design, xi: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
+    """(72) for agents that hear nobody and are pinned to the leader x0 alone: v (N, 6)."""
+    n = xi.shape[0]
+    return protocol_input(d, xi, np.zeros_like(xi), np.zeros(n), np.ones(n), x0, gamma)

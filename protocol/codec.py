@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 ESTIMATE_VERSION = 1
-_FORMAT = struct.Struct("<BBHIIdd12d")
 _HEADER = struct.Struct("<BBHIIdd")
+_FORMAT = struct.Struct(_HEADER.format + "12d")
 ESTIMATE_SIZE = _FORMAT.size
 
 
@@ -54,9 +54,12 @@ class Estimate:
     xi: np.ndarray
 
 
+_MAX_STATUS = max(AgentStatus)
+
+
 def encode_estimate(e: Estimate) -> bytes:
     return _FORMAT.pack(ESTIMATE_VERSION, int(e.status), e.agent, e.plan_id, e.seq, e.stamp_s, e.t_plan_s,
-                        *(float(v) for v in e.xi))
+                        *np.asarray(e.xi, dtype=float).tolist())
 
 
 def decode_header(data: bytes) -> tuple[AgentStatus, int, int, int, float, float]:
@@ -67,7 +70,7 @@ def decode_header(data: bytes) -> tuple[AgentStatus, int, int, int, float, float
     version, status, agent, plan, seq, stamp, t_plan = _HEADER.unpack_from(data)
     if version != ESTIMATE_VERSION:
         raise CodecError(f"version {version}, expected {ESTIMATE_VERSION}")
-    if status > max(AgentStatus):
+    if status > _MAX_STATUS:
         raise CodecError(f"unknown status {status}")
     if agent < 1:
         raise CodecError("agent number 0")

@@ -33,7 +33,7 @@ import scipy.linalg
 from .design import Design
 from . import kernels
 from .model import actuator_inverse
-from .rfl import RFL
+from .rfl import MAX_PITCH_RAD, RFL
 
 
 def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -173,10 +173,9 @@ class FormationController:
         v_out = np.empty((self.n, 6))
         omega = np.empty((self.n, 3))
         alpha = np.empty((self.n, 3))
-        z_w = self.z[:, 12:15] if self._Einv is not None else np.zeros((self.n, 3))
         r = self.rfl
-        kernels.actuate(self._z_pred, z_w, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
-                        self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, 1.4,
+        kernels.actuate(self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
+                        self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, MAX_PITCH_RAD,
                         self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], v_out, omega, alpha)
         return Actuation(self._push(v_out, omega), alpha)
 

@@ -69,28 +69,31 @@ class ConstantFormation(Formation):
 
     position_m: np.ndarray
     attitude_rad: np.ndarray
+    _kinematics: Kinematics = field(init=False, repr=False, compare=False)
+    _offsets: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = np.asarray(self.position_m).shape[0]
-        object.__setattr__(self, "position_m", _as_agents("position", self.position_m, n))
-        object.__setattr__(self, "attitude_rad", _as_agents("attitude", self.attitude_rad, n))
+        p, a = _as_agents("position", self.position_m, n), _as_agents("attitude", self.attitude_rad, n)
+        z = np.zeros_like(p)
+        for arr in (p, a, z):
+            arr.setflags(write=False)  # shared by every call: nobody may change them
+        k = Kinematics(p, z, z, a, z, z)
+        offsets = k.offsets()
+        for arr in offsets:
+            arr.setflags(write=False)
+        for name, value in (("position_m", p), ("attitude_rad", a), ("_kinematics", k), ("_offsets", offsets)):
+            object.__setattr__(self, name, value)
 
     @property
     def n_agents(self) -> int:
         return self.position_m.shape[0]
 
     def kinematics(self, t_s: float) -> Kinematics:
-        z = np.zeros_like(self.position_m)
-        return Kinematics(self.position_m, z, z, self.attitude_rad, z, z)
+        return self._kinematics
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        cached = self.__dict__.get("_cached")
-        if cached is None:
-            cached = self.kinematics(0.0).offsets()
-            for arr in cached:
-                arr.setflags(write=False)
-            object.__setattr__(self, "_cached", cached)
-        return cached
+        return self._offsets
 
 
 @dataclass(frozen=True)
@@ -379,6 +382,10 @@ class QuinticTransfer(Formation):
             object.__setattr__(self, name, _as_agents(name, np.asarray(getattr(self, name), dtype=float).reshape(-1, 3), n))
         if not (np.isfinite(self.duration_s) and self.duration_s > 0 and np.isfinite(self.t0_s)):
             raise ParameterError(f"transfer duration must be a positive number of seconds, got {self.duration_s!r}")
+        zero = np.zeros_like(self.p0)
+        object.__setattr__(self, "_coeffs", [_quintic_to_rest(x0 - x1, v0, zero, self.duration_s)
+                                             for x0, v0, x1 in ((self.p0, self.p_dot0, self.p1),
+                                                                (self.eta0, self.eta_dot0, self.eta1))])
 
     @property
     def n_agents(self) -> int:
@@ -389,18 +396,12 @@ class QuinticTransfer(Formation):
         return self.t0_s + self.duration_s
 
     def kinematics(self, t_s: float) -> Kinematics:
-        T = self.duration_s
-        tau = min(max(t_s - self.t0_s, 0.0), T)
-
-        def ev(x0, v0, x1):
-            z = np.zeros_like(x0)
-            if t_s >= self.t0_s + T:
-                return x1, z, z
-            if t_s < self.t0_s:
-                return x0 + v0 * (t_s - self.t0_s), v0, z
-            e, ed, edd = _quintic_eval(_quintic_to_rest(x0 - x1, v0, z, T), tau)
-            return x1 + e, ed, edd
-
-        p, pd, pdd = ev(self.p0, self.p_dot0, self.p1)
-        e, ed, edd = ev(self.eta0, self.eta_dot0, self.eta1)
-        return Kinematics(p, pd, pdd, e, ed, edd)
+        z = np.zeros_like(self.p0)
+        if t_s >= self.end_s:
+            return Kinematics(self.p1, z, z, self.eta1, z, z)
+        if t_s < self.t0_s:
+            dt = t_s - self.t0_s
+            return Kinematics(self.p0 + self.p_dot0 * dt, self.p_dot0, z, self.eta0 + self.eta_dot0 * dt, self.eta_dot0, z)
+        tau = t_s - self.t0_s
+        (pe, pv, pa), (ee, ev, ea) = (_quintic_eval(c, tau) for c in self._coeffs)
+        return Kinematics(self.p1 + pe, pv, pa, self.eta1 + ee, ev, ea)

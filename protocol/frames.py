@@ -25,9 +25,9 @@ def flip(vec: np.ndarray) -> np.ndarray:
     return np.asarray(vec, dtype=float) * _D
 
 
-def euler_flip(euler_rad: np.ndarray) -> np.ndarray:
-    """ZYX Euler angles, paper (body to earth) <-> MAVLink (FRD to NED): (r, p, y) -> (r, -p, -y)."""
-    return np.asarray(euler_rad, dtype=float) * _D
+euler_flip = flip
+"""ZYX Euler angles, paper (body to earth) <-> MAVLink (FRD to NED): (r, p, y) -> (r, -p, -y),
+the same sign change as for vectors."""
 
 
 def quaternion_flip(q: np.ndarray) -> np.ndarray:

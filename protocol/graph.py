@@ -90,24 +90,18 @@ class Topology:
         """Indices j (from 0) that agent i (from 0) listens to."""
         return np.flatnonzero(self.adjacency[i] > 0)
 
-    def reachable_from_leader(self) -> np.ndarray:
-        """Boolean mask of agents with a directed path from the leader."""
-        return reachable_within(self, np.ones(self.n_agents, dtype=bool))
+    def reachable_from_leader(self, present: np.ndarray | None = None) -> np.ndarray:
+        """Boolean mask of agents with a directed path from the leader; with ``present`` (a boolean
+        mask), through present agents only (absent agents neither relay nor count)."""
+        if present is None:
+            return _closure(self.adjacency, self.pinning > 0)
+        present = np.asarray(present, dtype=bool)
+        return _closure(self.adjacency * present[None, :] * present[:, None], (self.pinning > 0) & present)
 
     def has_spanning_tree(self) -> bool:
         """True if some agent reaches every agent along directed edges (ignoring the leader)."""
         n = self.n_agents
-        for root in range(n):
-            reached = np.zeros(n, dtype=bool)
-            reached[root] = True
-            frontier = reached.copy()
-            while frontier.any():
-                new = (self.adjacency[:, frontier] > 0).any(axis=1) & ~reached
-                reached |= new
-                frontier = new
-            if reached.all():
-                return True
-        return False
+        return any(_closure(self.adjacency, np.arange(n) == root).all() for root in range(n))
 
     def check_assumption_1(self) -> None:
         """Assumption 1: a spanning tree whose root hears the leader; equivalently every agent has a
@@ -192,15 +186,12 @@ FAMILIES = {"two-chain": two_chain, "triangles": triangles, "reverse-two-chain":
 when N >= 3, so removing any one agent leaves Assumption 1 intact in the two chains."""
 
 
-def reachable_within(topology: Topology, present: np.ndarray) -> np.ndarray:
-    """Agents with a directed path from the leader through present agents only (absent agents
-    neither relay nor count). ``present`` is a boolean mask (N,)."""
-    present = np.asarray(present, dtype=bool)
-    A = topology.adjacency * present[None, :] * present[:, None]
-    reached = (topology.pinning > 0) & present
+def _closure(adjacency: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """The agents reached from ``seed`` (a boolean mask) along edges j -> i with adjacency[i, j] > 0."""
+    reached = seed.copy()
     frontier = reached.copy()
     while frontier.any():
-        new = (A[:, frontier] > 0).any(axis=1) & ~reached & present
+        new = (adjacency[:, frontier] > 0).any(axis=1) & ~reached
         reached |= new
         frontier = new
     return reached

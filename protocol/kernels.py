@@ -1,9 +1,10 @@
 """The arithmetic of one control tick, compiled (numba): the observer update and prediction, the RFL
 law in x_r coordinates, thrust adaptation and the actuator inverse, for N rows at once.
 
-These are the only implementations of those formulas: ``RFL.control_xr`` and
-``FormationController`` call them, so the batch simulation and a companion run the same code.
-Pure functions of arrays; outputs are written into arrays the caller passes.
+``RFL.control_xr`` and ``FormationController`` call them, so the batch simulation and a companion
+run the same code. The actuator inverse at the end of ``actuate`` is ``model.actuator_inverse``
+(Remark 1) written per element, inside the compiled loop. Pure functions of arrays; outputs are
+written into arrays the caller passes.
 """
 
 from __future__ import annotations
@@ -63,11 +64,8 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
     w[0] = ct * cp * fx + ct * sp * fy - st * fz
     w[1] = (sf * st * cp - cf * sp) * fx + (sf * st * sp + cf * cp) * fy + sf * ct * fz
     w[2] = (cf * st * cp + sf * sp) * fx + (cf * st * sp - sf * cp) * fy + cf * ct * fz
-    for k in range(6):
-        acc = 0.0
-        for c in range(6):
-            acc += G_inv[k, c] * w[c]
-        u[k] = acc
+    u[:] = 0.0
+    _matvec_add(G_inv, w, u)
 
 
 @numba.njit(cache=True)
@@ -111,11 +109,12 @@ def observe(z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Ph
 
 
 @numba.njit(cache=True)
-def actuate(z_pred, z_w, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
+def actuate(z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
             kappa, adapt_k, k_lo, k_hi, v_out, omega, alpha):
     """Per row: cancel the estimated disturbance, predict half a period on, RFL, adapt and apply
     the thrust scale kappa, actuator inverse. Writes v_out (the v committed), omega, alpha; updates
-    kappa in place. z_w is the translational disturbance estimate (rows of zeros without one)."""
+    kappa in place. z is the observer state: with adaptation (adapt_k > 0, which needs a disturbance
+    estimate) columns 12-14 are the translational disturbance."""
     n, nz = z_pred.shape
     zm = np.empty(nz)
     u = np.empty(6)
@@ -123,11 +122,7 @@ def actuate(z_pred, z_w, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G
     for i in range(n):
         v_out[i, :] = v_in[i, :]
         if use_dist:
-            for k in range(6):
-                acc = 0.0
-                for c in range(6):
-                    acc += Einv[k, c] * z_pred[i, 12 + c]
-                v_out[i, k] -= acc
+            _matvec_add(Einv, z_pred[i, 12:18], v_out[i], -1.0)
         zm[:] = 0.0
         _matvec_add(half_Phi, z_pred[i], zm)
         _matvec_add(half_G, v_out[i], zm)
@@ -136,7 +131,7 @@ def actuate(z_pred, z_w, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G
             a0, a1, a2 = yd[3], yd[4], yd[5] + g
             norm2 = a0 * a0 + a1 * a1 + a2 * a2
             if norm2 > 1.0:  # below ~1 m/s^2 of commanded thrust the ratio says little
-                step = adapt_k * (z_w[i, 0] * a0 + z_w[i, 1] * a1 + z_w[i, 2] * a2) / norm2
+                step = adapt_k * (z[i, 12] * a0 + z[i, 13] * a1 + z[i, 14] * a2) / norm2
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
         for j in range(3):
             s, c = u[j] / kappa[i], u[j + 3] / kappa[i]

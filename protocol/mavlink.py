@@ -24,7 +24,6 @@ controls[0..5] is dropped and counted.
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,6 +97,3 @@ def rates_to_paper(rollspeed: float, pitchspeed: float, yawspeed: float) -> np.n
 def local_ned_to_paper(x: float, y: float, z: float) -> np.ndarray:
     return frames.flip([x, y, z])
 
-
-def is_finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)

@@ -31,7 +31,8 @@ import numpy as np
 from . import graph as graph_mod
 from .airframe import Airframe, ParameterError
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
-from .formation import (ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets, RotatingPolygon)
+from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
+                        RotatingPolygon)
 from .graph import GraphError, Schedule, Topology
 from .rfl import RFL
 
@@ -118,8 +119,14 @@ class Plan:
 
     def entry_formation(self, start_position_m: np.ndarray, t0_s: float = 0.0) -> Formation:
         """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0:
-        climb ``entry.climb_m`` at level attitude, then blend into the plan's formation."""
-        return EntryManeuver(self, np.asarray(start_position_m, dtype=float), t0_s)
+        climb ``entry.climb_m`` at level attitude, then blend into the plan's formation. Offsets are
+        relative to the leader's position at t0 (the leader is static during entry in every plan)."""
+        x0, _ = self.leader_state(t0_s)
+        start_offset = np.asarray(start_position_m, dtype=float) - x0[9:12]
+        lifted = start_offset + np.array([0.0, 0.0, self.entry.climb_m])
+        level = np.zeros((self.n_agents, 3))
+        climb = EntryBlend(ConstantFormation(lifted, level), start_offset, level, t0_s, self.entry.climb_s)
+        return Blend(climb, self.formation, t0_s + self.entry.climb_s, self.entry.blend_s)
 
     def with_agents(self, n_agents: int) -> "Plan":
         """The same plan for another number of drones (formation and topology must be defined for
@@ -136,41 +143,6 @@ class Plan:
         if isinstance(spec["formation"].get("attitude_rad"), list) and np.ndim(spec["formation"]["attitude_rad"]) == 2:
             raise PlanError(f"{self.source}: per-drone attitudes cannot be resized to {n_agents} drones")
         return plan_from_dict(spec, self.source)
-
-
-@dataclass(frozen=True)
-class EntryManeuver(Formation):
-    """Climb from the start positions, then blend into the plan's formation (see EntrySettings).
-    Offsets are relative to the leader's position at t0 (the leader is static during entry in
-    every plan this builds)."""
-
-    plan: Plan
-    start_position_m: np.ndarray
-    t0_s: float
-
-    def __post_init__(self) -> None:
-        p = self.plan
-        x0, _ = p.leader_state(self.t0_s)
-        start_offset = self.start_position_m - x0[9:12]
-        lifted = start_offset + np.array([0.0, 0.0, p.entry.climb_m])
-        level = np.zeros((p.n_agents, 3))
-        object.__setattr__(self, "_climb", EntryBlend(ConstantFormation(lifted, level), start_offset, level,
-                                                      self.t0_s, p.entry.climb_s))
-        object.__setattr__(self, "_blend", EntryBlend(p.formation, lifted, level, self.t0_s + p.entry.climb_s,
-                                                      p.entry.blend_s))
-
-    @property
-    def n_agents(self) -> int:
-        return self.plan.n_agents
-
-    @property
-    def end_s(self) -> float:
-        return self.t0_s + self.plan.entry.climb_s + self.plan.entry.blend_s
-
-    def kinematics(self, t_s: float):
-        if t_s < self.t0_s + self.plan.entry.climb_s:
-            return self._climb.kinematics(t_s)
-        return self._blend.kinematics(t_s)
 
 
 # -- parsing -----------------------------------------------------------------------------------

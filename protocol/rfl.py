@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
 from .airframe import Airframe
 from .model import (
     BODY_RATE,
@@ -34,6 +35,9 @@ from .model import (
     torque_matrix,
     H_f,
 )
+
+MAX_PITCH_RAD = 1.4
+"""Pitch beyond which the law is not evaluated (Psi is singular at +-pi/2, errata)."""
 
 # Slices of x_r.
 XR_VEL = slice(0, 3)
@@ -144,7 +148,7 @@ class RFL:
         return phi_c(x) @ self.U_inv.T
 
     @staticmethod
-    def phi_r_inverse(x_r: np.ndarray, max_pitch_rad: float = 1.4) -> np.ndarray:
+    def phi_r_inverse(x_r: np.ndarray, max_pitch_rad: float = MAX_PITCH_RAD) -> np.ndarray:
         """The state x (28) with phi_r(x) = x_r: omega = Psi(eta)^-1 eta_dot, v_b = R^T lambda_dot.
 
         Pitch is clipped to +-max_pitch_rad so that an estimate far off never meets the
@@ -169,7 +173,7 @@ class RFL:
         target = -drift_output_acceleration(x, self.airframe) + self.phi_r(x) @ self.L.T + v @ self.M0.T
         return np.linalg.solve(decoupling_matrix(x, self.airframe), target[..., None])[..., 0]
 
-    def control_xr(self, x_r: np.ndarray, v: np.ndarray, max_pitch_rad: float = 1.4) -> tuple[np.ndarray, np.ndarray]:
+    def control_xr(self, x_r: np.ndarray, v: np.ndarray, max_pitch_rad: float = MAX_PITCH_RAD) -> tuple[np.ndarray, np.ndarray]:
         """(49) written in x_r coordinates, without a linear solve: returns u (..., 6) and the
         commanded output acceleration y_ddot = L x_r + M(0) v (..., 6) (its rows 4-6 plus g e_z are
         the commanded specific thrust in the earth frame).
@@ -177,8 +181,6 @@ class RFL:
         M(x) = blockdiag(Psi, R_b2e) G with G constant, so M^-1 t = G^-1 [W t_eta; R^T t_lambda],
         W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v)`` (tested). Compiled
         (``kernels.rfl_xr_row``): it runs on every tick of every drone."""
-        from . import kernels
-
         xr2 = np.ascontiguousarray(np.asarray(x_r, dtype=float).reshape(-1, 12))
         v2 = np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float), x_r.shape[:-1] + (6,)).reshape(-1, 6))
         u = np.empty((xr2.shape[0], 6))

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from triswarm.protocol import model
-from triswarm.protocol.agent import protocol_input, reference_at
+from triswarm.protocol.agent import no_leader, pinned_input, reference_at
 from triswarm.protocol.airframe import TABLE_1, Airframe
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.design import DesignWeights, design
@@ -29,12 +29,6 @@ from .fc import FlightController, Snapshot
 from .physics import QUAT, Plant, quaternion_from_euler
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
-_ORIGIN = np.zeros(12)
-
-
-def _NO_LEADER(t_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """The autopilot's references are absolute: a leader at the local origin, at rest."""
-    return _ORIGIN, _ORIGIN
 DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
 
 
@@ -208,11 +202,10 @@ class SitlSwarm:
         h = xhat.copy()  # vehicles not in an internal mode: xi = 0, their commands are not used
         gamma = np.zeros((self.n, 6))
         for i in rows:
-            ref = reference_at(self._design, self.inner_ref[i].offsets, _NO_LEADER, now, self.inner.lead_s,
+            ref = reference_at(self._design, self.inner_ref[i].offsets, no_leader, now, self.inner.lead_s,
                                self.control_dt_s)
             h[i], gamma[i] = ref.h[0], ref.gamma[0]
-        zero = np.zeros(self.n)
-        v = protocol_input(self._design, xhat - h, np.zeros_like(h), zero, np.ones(self.n), np.zeros(12), gamma)
+        v = pinned_input(self._design, xhat - h, np.zeros(12), gamma)
         act = self.inner.actuate(v)
         for i in rows:
             fc = self.fcs[i]

@@ -9,7 +9,7 @@ import time
 import numpy as np
 from pymavlink import mavutil
 
-from triswarm.protocol.agent import protocol_input
+from triswarm.protocol.agent import no_leader, pinned_input, reference_at
 from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.formation import QuinticTransfer
@@ -80,11 +80,8 @@ class Pilot:
                                            self.climb_s)
                 self.started = True
             xhat = self.ctrl.observe(y)
-            t_p = t + self.ctrl.lead_s
-            h, _ = self.ref.offsets(t_p)
-            hm, hdm = self.ref.offsets(t_p + 0.5 * self.ctrl.dt_s)
-            v = protocol_input(self.design, xhat - h, np.zeros((1, 12)), np.zeros(1), np.ones(1), np.zeros(12),
-                               self.design.gamma(hm, hdm))
+            ref = reference_at(self.design, self.ref.offsets, no_leader, t, self.ctrl.lead_s, self.ctrl.dt_s)
+            v = pinned_input(self.design, xhat - ref.h, ref.x0, ref.gamma)
             act = self.ctrl.actuate(v)
             controls = encode_actuators(act.omega_rad_s[0], act.alpha_rad[0], self.max_rpm * math.pi / 30.0,
                                         math.radians(self.servo_deg))

@@ -85,3 +85,14 @@ def test_switching_schedule_cycles_every_period():
 def test_malformed_topologies_are_refused(A, g, msg):
     with pytest.raises(GraphError, match=msg):
         Topology("bad", A, g)
+
+
+def test_reachable_through_present_agents_only():
+    """The paper's triangles on six drones without agent 2: agent 3 hears only 2, so it alone is
+    cut off; in the two-chain every other agent still has a path."""
+    from triswarm.protocol.graph import triangles, two_chain
+
+    present = np.array([True, False, True, True, True, True])
+    assert triangles(6).reachable_from_leader(present).tolist() == [True, False, False, True, True, True]
+    assert two_chain(6).reachable_from_leader(present).tolist() == [True, False, True, True, True, True]
+    assert triangles(6).reachable_from_leader().all()
