@@ -16,6 +16,7 @@ from rich.table import Table
 
 from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.design import FormationError
+from triswarm.protocol.frames import DEFAULT_HOME
 from triswarm.protocol.graph import GraphError
 from triswarm.protocol.plan import PlanError
 
@@ -198,7 +199,7 @@ app.add_typer(sitl_app, name="sitl")
 def sitl_up(
     n: Annotated[int, typer.Option("-n", "--vehicles", help="Number of vehicles (sysid 1..N).")] = 1,
     manifest: Annotated[Path, typer.Option(help="Where to write the manifest JSON.")] = Path("sitl-manifest.json"),
-    home: Annotated[str, typer.Option(help="Swarm home LAT,LON,ALT_M (the local origin, on the ground).")] = "53.4668,-2.2339,60",
+    home: Annotated[str, typer.Option(help="Swarm home LAT,LON,ALT_M (the local origin, on the ground).")] = ",".join(f"{x:g}" for x in DEFAULT_HOME),
     speedup: Annotated[float, typer.Option(help="Run physics and streams K times faster than real time.")] = 1.0,
     rate_hz: Annotated[float, typer.Option(help="ATTITUDE and LOCAL_POSITION_NED rate on companion links [Hz].")] = 100.0,
     physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
@@ -252,8 +253,7 @@ def sitl_up(
         if stats is not None:
             write_json_atomically(stats, result)
     if not quiet:
-        rows = [(v["sysid"], v["drops"], v["counters"]) for v in result["vehicles"]]
-        dropped = [f"{sid}: {drops}" for sid, drops, _ in rows if drops]
+        dropped = [f"{v['sysid']}: {v['drops']}" for v in result["vehicles"] if v["drops"]]
         console.print(f"stopped after {result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
                       f"(speedup {result['speedup_achieved'] or 0:.2f}); dropped frames per vehicle: "
                       f"{', '.join(dropped) if dropped else 'none'}", soft_wrap=True)

@@ -17,6 +17,8 @@ import math
 import numpy as np
 
 EARTH_RADIUS_M = 6371000.0
+DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
+
 _D = np.array([1.0, -1.0, -1.0])
 
 

@@ -18,6 +18,9 @@ from triswarm.protocol import frames
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe, ParameterError
 from triswarm.protocol.frames import LocalProjection
 from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink
+from triswarm.protocol.model import actuator_inverse
+
+from .physics import rotation_from_quaternion
 
 LINKS = ("companion", "gcs")
 FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2: force
@@ -50,6 +53,11 @@ class ParamSpec:
     lo: float
     hi: float
     doc: str
+
+
+AIRFRAME_PARAMS = frozenset({"MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ_KGM2", "KF", "KD", "ARM_LEN_M",
+                             "SERVO_DELAY_S", "MOT_MAX_RPM", "SERVO_LIM_DEG"})
+"""The parameters that change the plant (``FlightController.airframe``)."""
 
 
 def param_specs(af: Airframe) -> list[ParamSpec]:
@@ -100,8 +108,12 @@ class Snapshot:
     landed: bool
     rho: np.ndarray
 
+    def paper_state(self) -> np.ndarray:
+        """The state x of (28): body velocity, body rates, Euler angles, position."""
+        return np.concatenate([self.velocity_b_m_s, self.rate_b_rad_s, self.euler_rad, self.position_m], axis=-1)
+
     def row(self, i: int) -> "Snapshot":
-        return Snapshot(*(getattr(self, f.name)[i] for f in dataclasses.fields(self)))
+        return Snapshot(*(v[i] for v in vars(self).values()))
 
 
 @dataclass
@@ -123,10 +135,11 @@ class FlightController:
         self.specs = param_specs(airframe)
         self.spec_by_name = {p.name: p for p in self.specs}
         self.params = {p.name: float(p.default) for p in self.specs}
+        self.param_index = {p.name: i for i, p in enumerate(self.specs)}
+        self._airframe = self._airframe_from_params()
         self.armed = False
         self.mode = CustomMode.EXTERNAL
         self.failsafe = False
-        self.mode_since_s = 0.0
         self.failsafe_since_s = 0.0
         self.landed_since_s = 0.0
         self.ext_omega = np.zeros(3)
@@ -140,6 +153,8 @@ class FlightController:
         self.actuators_changed = False
         """Set when an actuator command arrived that the plant has not been given yet."""
         self.airframe_changed = False
+        self.rates_changed = False
+        """Set when a stream rate changed: the server reschedules this vehicle's streams."""
         self.battery_used_mah = 0.0
         self.battery_voltage_v = self._open_circuit_voltage()
         self.battery_current_a = 0.0
@@ -147,6 +162,10 @@ class FlightController:
     # -- parameters -------------------------------------------------------------------------
 
     def airframe(self) -> Airframe:
+        """The plant as its parameters say (validated when they were set)."""
+        return self._airframe
+
+    def _airframe_from_params(self) -> Airframe:
         p = self.params
         return dataclasses.replace(
             self.nominal, mass_kg=p["MASS_KG"], Ixx_kg_m2=p["IXX_KGM2"], Iyy_kg_m2=p["IYY_KGM2"],
@@ -165,24 +184,31 @@ class FlightController:
             return f"{name} must be within [{spec.lo:g}, {spec.hi:g}], got {value:g}"
         old = self.params[name]
         self.params[name] = float(value)
-        try:
-            self.airframe()
-        except ParameterError as exc:
-            self.params[name] = old
-            return str(exc)
-        if name in ("MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ_KGM2", "KF", "KD", "ARM_LEN_M",
-                    "SERVO_DELAY_S", "MOT_MAX_RPM", "SERVO_LIM_DEG"):
+        if name in AIRFRAME_PARAMS:
+            try:
+                self._airframe = self._airframe_from_params()
+            except ParameterError as exc:
+                self.params[name] = old
+                return str(exc)
             self.airframe_changed = True
+        elif name.endswith("_HZ"):
+            self.rates_changed = True
         return None
 
     def stream_rate_hz(self, link: str, msg_id: int) -> float:
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return 1.0
         code = STREAM_CODE.get(msg_id)
         return 0.0 if code is None else self.params[f"{LINK_PREFIX[link]}_{code}_HZ"]
 
+    @property
+    def drops(self) -> int:
+        """Frames dropped, all reasons."""
+        return sum(v for k, v in self.counters.items() if k.startswith("drop_"))
+
     def _param_value(self, name: str):
-        index = next(i for i, p in enumerate(self.specs) if p.name == name)
         return mavlink.MAVLink_param_value_message(name.encode(), self.params[name], mavlink.MAV_PARAM_TYPE_REAL32,
-                                                   len(self.specs), index)
+                                                   len(self.specs), self.param_index[name])
 
     # -- state ------------------------------------------------------------------------------
 
@@ -193,7 +219,6 @@ class FlightController:
         changed = mode != self.mode or failsafe != self.failsafe
         self.mode = mode
         self.failsafe = failsafe
-        self.mode_since_s = now_s
         if changed:
             self.mode_changed = True
             self.outbox.append(Outgoing(self.heartbeat(), None))  # clients learn the state at once
@@ -431,8 +456,6 @@ class FlightController:
             msg_id = int(p[0])
             rate = self.stream_rate_hz(link, msg_id)
             interval = -1 if rate <= 0 else int(round(1e6 / rate))
-            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-                interval = 1_000_000
             replies.append(Outgoing(mavlink.MAVLink_message_interval_message(msg_id, interval), link))
             result = mavlink.MAV_RESULT_ACCEPTED
         elif command in (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
@@ -498,7 +521,7 @@ class FlightController:
         if not snap.landed:
             return mavlink.MAV_RESULT_DENIED, "takeoff refused: already flying"
         rel = alt_amsl_m - self.home.alt_m if math.isfinite(alt_amsl_m) else self.params["TKO_ALT_M"]
-        self.takeoff_alt_m = max(0.5, min(100.0, rel)) if math.isfinite(rel) else self.params["TKO_ALT_M"]
+        self.takeoff_alt_m = max(0.5, min(100.0, rel))
         self.set_mode(CustomMode.TAKEOFF, now_s)
         return mavlink.MAV_RESULT_ACCEPTED, None
 
@@ -603,12 +626,7 @@ def _highres_imu(fc, now_s, s):
 
 
 def _rotation_ned_frd(q_paper):
-    qw, qx, qy, qz = frames.quaternion_flip(q_paper)
-    return np.array([
-        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
-    ])
+    return rotation_from_quaternion(frames.quaternion_flip(q_paper))
 
 
 SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -619,7 +637,7 @@ SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR
 
 def _sys_status(fc, now_s, s):
     c = fc.counters
-    drops = sum(v for k, v in c.items() if k.startswith("drop_"))
+    drops = fc.drops
     total = drops + c["rx_frames"]
     drop_rate = int(10000 * drops / total) if total else 0
     return mavlink.MAVLink_sys_status_message(
@@ -652,8 +670,7 @@ def _home_position(fc, now_s, s):
 
 def _actuator_output_status(fc, now_s, s):
     af = fc.airframe()
-    omega = np.sqrt(np.hypot(s.rho[0:3], s.rho[3:6]))
-    alpha = np.arctan2(s.rho[0:3], s.rho[3:6])
+    omega, alpha = actuator_inverse(s.rho)
     values = list(omega / af.max_rotor_speed_rad_s) + list(alpha / af.servo_limit_rad) + [0.0] * 26
     return mavlink.MAVLink_actuator_output_status_message(_us(now_s), 0b111111, values)
 

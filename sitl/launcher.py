@@ -11,10 +11,11 @@ import asyncio
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
-from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
 
+from .fc import LINK_PREFIX
 from .server import SitlServer
-from .swarm import DEFAULT_HOME, SitlSwarm
+from .swarm import SitlSwarm
 
 
 @dataclass(frozen=True)
@@ -34,12 +35,9 @@ class SitlOptions:
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
-    parts = text.split(",")
-    if len(parts) != 3:
-        raise ValueError(f"--home must be LAT,LON,ALT_M (three numbers), got {text!r}")
     try:
-        lat, lon, alt = (float(p) for p in parts)
-    except ValueError:
+        lat, lon, alt = (float(p) for p in text.split(","))
+    except ValueError:  # not numbers, or not three of them
         raise ValueError(f"--home must be LAT,LON,ALT_M (three numbers), got {text!r}") from None
     LocalProjection(lat, lon, alt)  # validates
     return lat, lon, alt
@@ -50,13 +48,13 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     return the stats."""
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
-    if not (opts.rate_hz >= 0 and opts.rate_hz <= 1000):
-        raise ValueError(f"--rate-hz must be between 0 and 1000, got {opts.rate_hz}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
                       seed=opts.seed)
     for fc in swarm.fcs:
         for code in ("ATT", "LPOS"):
-            fc.set_param(f"SC_{code}_HZ", opts.rate_hz)
+            problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
+            if problem:
+                raise ValueError(f"--rate-hz: {problem}")
     server = SitlServer(swarm, opts.bind, opts.base_port, opts.speedup)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -246,17 +246,12 @@ class Plant:
         self.rho = np.zeros((self.n, 6))
         """rho (29) actually applied during the last physics step (after limits and delay)."""
         self.time_s = 0.0
-        self._steps = 0
+        self.steps = 0
 
     def _steps_of(self, delay_s: float) -> int:
         if not (math.isfinite(delay_s) and delay_s >= 0):
             raise ValueError(f"servo delay must be a non-negative number of seconds, got {delay_s!r}")
         return int(round(delay_s / self.dt_s))
-
-    @property
-    def airframe(self) -> Airframe:
-        """The airframe of drone 1 (all of them unless set_airframe changed one)."""
-        return self.airframes[0]
 
     def set_airframe(self, i: int, af: Airframe) -> None:
         """Change drone i's physical parameters (e.g. a parameter set over MAVLink)."""
@@ -286,7 +281,7 @@ class Plant:
         self.alpha_hist[:] = servo[:, None, :]
         self.alpha_cmd[:] = servo
         self.time_s = 0.0
-        self._steps = 0
+        self.steps = 0
 
     def command(self, omega_rad_s: np.ndarray, alpha_rad: np.ndarray) -> None:
         """Motor speeds [rad/s] and servo angles [rad], (N, 3) each; held until the next command.
@@ -299,8 +294,8 @@ class Plant:
     def advance(self, n_steps: int) -> None:
         self.hist_pos = _advance(self.state, self.landed, self.omega_cmd, self.alpha_cmd, self.alpha_hist,
                                  self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho)
-        self._steps += int(n_steps)
-        self.time_s = self._steps * self.dt_s
+        self.steps += int(n_steps)
+        self.time_s = self.steps * self.dt_s
 
     def observe(self) -> PlantState:
         s = self.state

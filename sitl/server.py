@@ -30,6 +30,8 @@ MAX_BURST_STEPS = 200
 FINE_WAIT_S = 0.002
 MAX_DATAGRAMS_PER_WAKEUP = 256  # drain a flood in slices so the physics keeps its clock
 RECV_BUFFER_BYTES = 4 << 20
+SCHEDULED = (mavlink.MAVLINK_MSG_ID_HEARTBEAT, *(m for m, _, _ in STREAMS.values()))
+"""Every message a vehicle sends on its own schedule (rates from ``FlightController.stream_rate_hz``)."""
 
 
 @dataclass
@@ -155,7 +157,6 @@ class SitlServer:
             msgs = link.parser.parse_buffer(data) or []
         except Exception:  # a parser that chokes on garbage loses the datagram, never the vehicle
             fc.counters["drop_unparseable_datagram"] += 1
-            reset_parser(link.parser)
             return
         snap = self.swarm.snapshot(link.vehicle)
         replies = []
@@ -167,8 +168,9 @@ class SitlServer:
                 fc.counters["drop_handler_error"] += 1
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
-        if replies or fc.outbox:
-            self._schedule_vehicle(link.vehicle)  # a rate may have changed
+        if fc.rates_changed:
+            fc.rates_changed = False
+            self._schedule_vehicle(link.vehicle)
         for out in replies:
             self._send(link.vehicle, out.msg, out.link)
         self._flush_outbox(link.vehicle)
@@ -207,8 +209,8 @@ class SitlServer:
         fc = self.swarm.fcs[i]
         dt = self.swarm.dt_s
         for name in LINKS:
-            for msg_id in [mavlink.MAVLINK_MSG_ID_HEARTBEAT] + [m for m, _, _ in STREAMS.values()]:
-                rate = 1.0 if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT else fc.stream_rate_hz(name, msg_id)
+            for msg_id in SCHEDULED:
+                rate = fc.stream_rate_hz(name, msg_id)
                 key = (i, name, msg_id)
                 old = self._version.get(key)
                 if old is not None and old[1] == rate:
@@ -298,7 +300,7 @@ class SitlServer:
             vehicles.append({
                 "sysid": fc.sysid,
                 "counters": dict(sorted(fc.counters.items())),
-                "drops": sum(v for k, v in fc.counters.items() if k.startswith("drop_")),
+                "drops": fc.drops,
                 "datagrams_rx": {n: lk.datagrams_rx for n, lk in self.links[i].items()},
                 "datagrams_tx": {n: lk.datagrams_tx for n, lk in self.links[i].items()},
                 "armed": fc.armed, "mode": fc.mode.name,

@@ -19,7 +19,7 @@ from triswarm.protocol.airframe import TABLE_1, Airframe
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.design import DesignWeights, design
 from triswarm.protocol.formation import QuinticTransfer
-from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
 from triswarm.protocol.graph import Schedule, Topology
 from triswarm.protocol.mavlink import CustomMode
 from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBANCE, DEFAULT_R, DEFAULT_R_BAR
@@ -29,7 +29,6 @@ from .fc import FlightController, Snapshot
 from .physics import QUAT, Plant, quaternion_from_euler
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
-DEFAULT_HOME = (53.4668, -2.2339, 60.0)  # lat, lon [deg], alt [m]: Manchester, where the paper's drone flew
 
 
 def ground_grid(n: int, spacing_m: float = 2.5) -> np.ndarray:
@@ -59,27 +58,39 @@ class SitlSwarm:
         self.n = n
         self.home = home or LocalProjection(*DEFAULT_HOME)
         self.physics_hz = float(physics_hz)
-        self.dt_s = 1.0 / self.physics_hz
+        dt_s = 1.0 / self.physics_hz
         self.control_every = max(1, int(round(self.physics_hz / control_hz)))
-        self.control_dt_s = self.control_every * self.dt_s
+        self.control_dt_s = self.control_every * dt_s
         self.start_m = ground_grid(n, spacing_m)
-        self.plant = Plant(airframe, n, dt_s=self.dt_s)
+        self.plant = Plant(airframe, n, dt_s=dt_s)
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
         self.fcs = [FlightController(i + 1, airframe, self.home, self.start_m[i], boot) for i in range(n)]
         self.rng = np.random.default_rng(seed)
-        self.steps = 0
-        self.time_s = 0.0
         self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
         self.omega_cmd = np.zeros((n, 3))
         self.alpha_cmd = np.zeros((n, 3))
-        self._design = autopilot_design(airframe)
-        self.inner = FormationController(self._design, n, 1.0 / self.control_dt_s)
+        self.inner = FormationController(autopilot_design(airframe), n, 1.0 / self.control_dt_s)
         self.inner.reset(self.plant.observe().paper_state())
         self.inner_ref: list[QuinticTransfer | None] = [None] * n
         self._hover_omega = float(model.hover_trim(airframe)[0][0])
+
+    @property
+    def dt_s(self) -> float:
+        """The physics step [s]."""
+        return self.plant.dt_s
+
+    @property
+    def steps(self) -> int:
+        """Physics steps since boot."""
+        return self.plant.steps
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time since boot [s]."""
+        return self.plant.time_s
 
     # -- sensors ----------------------------------------------------------------------------
 
@@ -98,10 +109,11 @@ class SitlSwarm:
             vel_b = vel_b + noise[:, 1]
         quat = quaternion_from_euler(eta) if np.any(sig[:, 2] > 0) else self.plant.state[:, QUAT].copy()
         rho = self.plant.rho.copy()
-        kf_m = np.array([af.k_f_N_s2 / af.mass_kg for af in self.plant.airframes])
+        P = self.plant.params  # per vehicle, in physics.airframe_vector's order
+        kf_m = P[:, 7] / P[:, 0]
         force_b = kf_m[:, None] * (rho @ model.H_f.T)
         # on the ground the accelerometer also feels the normal force
-        g = np.array([af.gravity_m_s2 for af in self.plant.airframes])
+        g = P[:, 1]
         R = model.rotation_body_to_earth(obs.euler_rad)
         normal = np.where(obs.landed[:, None], g[:, None] * R[:, 2, :], 0.0)
         self._rows = Snapshot(pos, vel_e, vel_b, eta, quat, rate, force_b + normal, obs.landed, rho)
@@ -143,8 +155,6 @@ class SitlSwarm:
         if changed:
             self.plant.command(self.omega_cmd, self.alpha_cmd)
         self.plant.advance(1)
-        self.steps += 1
-        self.time_s = self.steps * self.dt_s
 
     def _control_tick(self) -> None:
         now = self.time_s
@@ -153,7 +163,6 @@ class SitlSwarm:
             snap = self.snapshot(i)
             ref = self.inner_ref[i]
             fc.tick(now, self.control_dt_s, snap, internal_done=ref is not None and now >= ref.end_s)
-            self.apply_airframe(i)
             if fc.mode_changed:
                 fc.mode_changed = False
                 self._start_manoeuvre(i, fc, snap, now)
@@ -171,8 +180,7 @@ class SitlSwarm:
         if fc.mode not in INTERNAL_MODES or not fc.armed:
             self.inner_ref[i] = None
             return
-        x = self._paper_state(i)
-        self.inner.reset(x[None, :], rows=np.array([i]))
+        self.inner.reset(snap.paper_state()[None, :], rows=np.array([i]))
         p0, v0 = snap.position_m.copy(), snap.velocity_e_m_s.copy()
         eta0 = snap.euler_rad.copy()
         eta_dot0 = model.euler_rate_matrix(eta0) @ snap.rate_b_rad_s
@@ -186,14 +194,10 @@ class SitlSwarm:
             T = max(2.0, 1.875 * height / fc.params["LAND_SPEED_M_S"])
             p1 = np.array([p0[0] + v0[0] * 0.5, p0[1] + v0[1] * 0.5, -0.3])
         else:  # TAKEOFF
-            alt = fc.takeoff_alt_m or fc.params["TKO_ALT_M"]
+            alt = fc.takeoff_alt_m
             T = max(2.0, 1.875 * alt / 1.5)
             p1 = np.array([p0[0], p0[1], alt])
         self.inner_ref[i] = QuinticTransfer(p0, v0, p1, eta0, eta_dot0, level, now, T)
-
-    def _paper_state(self, i: int) -> np.ndarray:
-        rows = self.sensor_rows()
-        return np.concatenate([rows.velocity_b_m_s[i], rows.rate_b_rad_s[i], rows.euler_rad[i], rows.position_m[i]])
 
     def _fly_internal(self, rows: np.ndarray, now: float) -> None:
         s = self.sensor_rows()
@@ -202,10 +206,10 @@ class SitlSwarm:
         h = xhat.copy()  # vehicles not in an internal mode: xi = 0, their commands are not used
         gamma = np.zeros((self.n, 6))
         for i in rows:
-            ref = reference_at(self._design, self.inner_ref[i].offsets, no_leader, now, self.inner.lead_s,
+            ref = reference_at(self.inner.design, self.inner_ref[i].offsets, no_leader, now, self.inner.lead_s,
                                self.control_dt_s)
             h[i], gamma[i] = ref.h[0], ref.gamma[0]
-        v = pinned_input(self._design, xhat - h, np.zeros(12), gamma)
+        v = pinned_input(self.inner.design, xhat - h, np.zeros(12), gamma)
         act = self.inner.actuate(v)
         for i in rows:
             fc = self.fcs[i]
