@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/triswarm sim --scenario paper-hexagon --duration 50 --out runs/demo-$$(date +%Y%m%d-%H%M%S) --strict
+	$(VENV)/bin/triswarm demo --plan examples/paper-hexagon.toml
 
 test: $(STAMP) netns-tools lint
 	$(PY) -m pytest

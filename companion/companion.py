@@ -26,7 +26,6 @@ import json
 import logging
 import math
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,15 +35,18 @@ from triswarm.protocol import model
 from triswarm.protocol.agent import Reference, no_leader, pinned_input, protocol_input, reference_at
 from triswarm.protocol.codec import AgentStatus, plan_id
 from triswarm.protocol.controller import FormationController
-from triswarm.protocol.formation import Formation, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
+from triswarm.protocol.airframe import TABLE_1, ParameterError
+from triswarm.protocol.formation import Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
 from triswarm.protocol.graph import Topology
-from triswarm.protocol.mavlink import (COMP_ONBOARD, attitude_to_paper, encode_actuators, local_ned_to_paper,
-                                       mavlink, rates_to_paper)
-from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
+from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators,
+                                       local_ned_to_paper, mavlink, rates_to_paper)
+from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, read_plan_file
+from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
 
 from .bus import Bus, default_config, tune
 from .health import LoopHealth
 from .links import MavLink, Router
+from .plan_server import PlanServer
 from .state import Mission, StateStore
 
 log = logging.getLogger("triswarm.companion")
@@ -52,6 +54,7 @@ log = logging.getLogger("triswarm.companion")
 ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
+LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
              mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
@@ -95,15 +98,14 @@ class ParamSpec:
 
 
 def load_plan_file(path: Path) -> Plan:
-    try:
-        spec = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PlanError(f"{path}: no such plan file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"{path}: not valid TOML ({exc})") from None
-    return plan_from_dict(spec, str(path))
+    return plan_from_dict(read_plan_file(path), str(path))
+
+
+def leader_with_moves(leader: Formation, moves: list[dict]) -> Formation:
+    """The plan's leader after the operator's leader commands, in order."""
+    for m in moves:
+        leader = LeaderMove(leader, m["at_s"], m["target_m"] and tuple(m["target_m"]), m["yaw_rad"], m["speed_m_s"])
+    return leader
 
 
 @dataclass
@@ -155,11 +157,18 @@ class Companion:
             "REJOIN_S": ParamSpec(1.0, 0.2, 60.0),       # shortest way back into the formation [s]
             "REJOIN_ACCEL": ParamSpec(4.0, 0.5, 20.0),   # peak acceleration on the way back [m/s^2]
             "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),  # high-rate telemetry forwarded to the GCS [Hz]
+            "PLAN_T_S": ParamSpec(math.nan, -math.inf, math.inf, read_only=True),  # plan time when read [s]
         }
         self.values = {k: p.default for k, p in self.params.items()}
         self.phase = Phase.IDLE
         self.mission: Mission | None = None
         self.plan: Plan | None = None
+        self.leader: Formation | None = None  # the plan's leader x0 with the operator's moves
+        self.staged: tuple[Plan, int] | None = None  # received, valid, waiting for its start command
+        self._start_task: asyncio.Task | None = None
+        self._statustext_id = 0
+        omega, alpha = model.hover_trim(TABLE_1)  # until a plan names the airframe
+        self._idle = (omega * IDLE_FRACTION, alpha)
         self._queue: deque[Sample] = deque(maxlen=50)
         self._gcs_last: dict[int, float] = {}
         self._errors = 0
@@ -186,8 +195,110 @@ class Companion:
         if self.plan is not None and not 1 <= self.agent <= self.plan.n_agents:
             raise PlanError(f"agent {self.agent} is not in plan {self.plan.name} ({self.plan.n_agents} drones)")
         if self.plan is not None:
-            self.values["COUPLING_C"] = self.plan.design.c
-            self.params["COUPLING_C"] = ParamSpec(self.plan.design.c, 0.0, 1e9, read_only=True)
+            self._plan_in_force()
+
+    def _plan_in_force(self) -> None:
+        self.leader = leader_with_moves(self.plan.leader, self.mission.leader_moves)
+        self.values["COUPLING_C"] = self.plan.design.c
+        self.params["COUPLING_C"] = ParamSpec(self.plan.design.c, 0.0, 1e9, read_only=True)
+
+    def _leader_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        h, h_dot = self.leader.offsets(t_s)
+        return h[0], h_dot[0]
+
+    def _held_items(self) -> list[PlanItem]:
+        """What a download gets: the plan in force, or before any, the one waiting for its start."""
+        spec = self.plan.spec if self.plan is not None else self.staged[0].spec if self.staged else None
+        if spec is None:
+            return []
+        if getattr(self, "_items", (None,))[0] is not spec:
+            self._items = (spec, encode_plan(spec))
+        return self._items[1]
+
+    def _receive_plan(self, items: list[PlanItem]) -> tuple[int, str]:
+        """A whole mission came: check it as `plan check` does; stage it if it flies."""
+        try:
+            spec, pid = decode_plan(items)
+            plan = plan_from_dict(spec, "uploaded plan")
+            if not 1 <= self.agent <= plan.n_agents:
+                raise PlanError(f"uploaded plan: agent {self.agent} is not in it ({plan.n_agents} drones)")
+            plan.check()
+        except PlanTransferError as exc:
+            return exc.ack_code, f"plan refused: {exc}"
+        except (PlanError, ParameterError, ValueError) as exc:
+            return mavlink.MAV_MISSION_INVALID, f"plan refused: {exc}"
+        self.staged = (plan, pid)
+        return mavlink.MAV_MISSION_ACCEPTED, f"plan {plan.name} {pid:08x} received; waiting for its start"
+
+    def _clear_plans(self) -> tuple[int, str]:
+        if self.phase in (Phase.FLYING, Phase.HOLDING):
+            return mavlink.MAV_MISSION_DENIED, "clear refused: flying; land first"
+        self.staged = None
+        if self._start_task is not None:
+            self._start_task.cancel()
+        self.plan = self.mission = self.leader = None
+        self.store.clear()
+        self._set_phase(Phase.IDLE, "")
+        return mavlink.MAV_MISSION_ACCEPTED, "plans cleared"
+
+    def _start_plan(self, pid: int, start_unix_s: float) -> tuple[int, str]:
+        """MAV_CMD_TRISWARM_PLAN_START: the staged plan (or the one in force, again) from a
+        common start time."""
+        m = self.mission
+        if m is not None and m.plan_id == pid and m.start_unix_s == start_unix_s and m.phase != "done":
+            return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry of the same command
+        if self.phase in (Phase.FLYING, Phase.HOLDING):
+            return mavlink.MAV_RESULT_DENIED, "plan start refused: flying; land first"
+        if not (math.isfinite(start_unix_s) and start_unix_s > time.time() - 1.0):
+            return mavlink.MAV_RESULT_DENIED, "plan start refused: the start time has passed"
+        if self.staged is not None and self.staged[1] == pid:
+            plan = self.staged[0]
+        elif m is not None and m.plan_id == pid:
+            plan = self.plan
+        else:
+            return mavlink.MAV_RESULT_DENIED, f"plan start refused: no plan {pid:08x} here; upload it first"
+        reopen = m is None or m.plan_id != pid or not hasattr(self, "bus")
+        self.staged = None
+        self.plan, self.mission = plan, Mission(plan.spec, pid, self.agent, start_unix_s, "scheduled")
+        self.store.save(self.mission)
+        self._plan_in_force()
+        if reopen:
+            if hasattr(self, "bus"):
+                self.bus.close()
+            self._open_bus(self.loop)
+        self._schedule()
+        return mavlink.MAV_RESULT_ACCEPTED, f"plan {plan.name} starts at {start_unix_s:.1f}"
+
+    def _leader_command(self, msg) -> tuple[int, str]:
+        """MAV_CMD_TRISWARM_LEADER_GOTO / _HOLD: a move of x0 from a plan time common to the swarm."""
+        m = self.mission
+        if m is None or m.start_unix_s is None:
+            return mavlink.MAV_RESULT_DENIED, "leader command refused: no plan in force"
+        at_s = float(msg.param3)
+        if not (math.isfinite(at_s) and at_s >= time.time() - m.start_unix_s - LEADER_LATE_S):
+            return mavlink.MAV_RESULT_DENIED, f"leader command refused: plan time {at_s:.2f} s has passed"
+        if msg.command == mavlink.MAV_CMD_TRISWARM_LEADER_GOTO:
+            if msg.get_type() == "COMMAND_INT":
+                target = [msg.x / 1000.0, msg.y / 1000.0, float(msg.z)]
+            else:
+                target = [float(msg.param5), float(msg.param6), float(msg.param7)]
+            yaw = None if math.isnan(msg.param2) else float(msg.param2)
+            move = {"at_s": at_s, "target_m": target, "yaw_rad": yaw, "speed_m_s": float(msg.param1)}
+        else:
+            move = {"at_s": at_s, "target_m": None, "yaw_rad": None, "speed_m_s": 1.0}
+        if move in m.leader_moves:
+            return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry
+        if m.leader_moves and at_s < m.leader_moves[-1]["at_s"]:
+            return mavlink.MAV_RESULT_DENIED, "leader command refused: older than the last one"
+        try:
+            leader = leader_with_moves(self.leader, [move])
+        except ParameterError as exc:
+            return mavlink.MAV_RESULT_DENIED, f"leader command refused: {exc}"
+        self.leader = leader
+        m.leader_moves.append(move)
+        self.store.save(m)
+        what = "hold" if move["target_m"] is None else "goto " + " ".join(f"{v:.1f}" for v in move["target_m"])
+        return mavlink.MAV_RESULT_ACCEPTED, f"leader {what} at t {at_s:.1f} s"
 
     # -- run ----------------------------------------------------------------------------------
 
@@ -199,6 +310,7 @@ class Companion:
         self.gcs_link = MavLink("gcs", self.opts.gcs_url, self.agent, COMP_ONBOARD)
         self.links = [self.fc_link, self.gcs_link]
         self.router = Router(self.agent, COMP_ONBOARD)
+        self.plans = PlanServer(self._receive_plan, self._clear_plans, self._held_items, self._say)
         tasks: list[asyncio.Task] = []
         try:
             self.fc_link.open(loop, self._on_fc)
@@ -207,6 +319,7 @@ class Companion:
                 self._open_bus(loop)
             self.fc_link.after_read = self._process_samples
             tasks.append(asyncio.create_task(self._every_second()))
+            tasks.append(asyncio.create_task(self._poll_plans()))
             tasks.append(asyncio.create_task(self._mission_task()))
             await stop.wait()
         finally:  # stop ticking first, then the tasks, then the bus
@@ -215,6 +328,8 @@ class Companion:
             if self._deadline is not None:
                 self._deadline.cancel()
             self._waiting = None
+            if self._start_task is not None:
+                tasks.append(self._start_task)
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -296,6 +411,11 @@ class Companion:
             fc.heard = True
             fc.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             fc.mode = msg.custom_mode
+            if self.phase in (Phase.FLYING, Phase.HOLDING):
+                if not fc.armed:
+                    self._release("disarmed")
+                elif fc.mode != CustomMode.EXTERNAL and msg.system_status != mavlink.MAV_STATE_CRITICAL:
+                    self._release(f"the flight controller is in {_mode_name(fc.mode)}")
         elif t == "ATTITUDE":
             fc.att = (msg.time_boot_ms, attitude_to_paper(msg.roll, msg.pitch, msg.yaw),
                       rates_to_paper(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
@@ -373,11 +493,10 @@ class Companion:
 
     async def _mission(self) -> None:
         await self.setup_fc()
-        announce = log.info
-        if self.mission is None:
-            announce(f"agent {self.agent}: no plan; waiting")
-            return
         m = self.mission
+        if m is None:
+            log.info(f"agent {self.agent}: no plan; waiting for one")
+            return
         now = time.time()
         if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
             self.statustext(f"companion {self.agent}: resuming plan after restart")
@@ -387,15 +506,54 @@ class Companion:
             m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
             m.phase = "scheduled"
             self.store.save(m)
-            self.phase = Phase.SCHEDULED
+        if m.phase == "scheduled":
+            self._schedule()
+
+    def _schedule(self) -> None:
+        """Fly the plan in force from its start time (after the flight controller is set up)."""
+        if self._start_task is not None:
+            self._start_task.cancel()
+        self._set_phase(Phase.SCHEDULED, "")
+        self._start_task = asyncio.ensure_future(self._start_when_due())
+
+    async def _start_when_due(self) -> None:
+        m = self.mission
+        try:
+            while self.fc.clock_offset_s is None:  # setup_fc is still running
+                await asyncio.sleep(0.05)
             self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
-            if time.time() > m.start_unix_s - ARM_LEAD_S:
-                self.statustext(f"companion {self.agent}: ready {time.time() - m.start_unix_s + ARM_LEAD_S:.1f} s "
-                                f"late for the start", mavlink.MAV_SEVERITY_WARNING)
-            await asyncio.sleep(max(0.0, m.start_unix_s - ARM_LEAD_S - time.time()))
-            await self._arm()
+            if self.opts.autostart:
+                if time.time() > m.start_unix_s - ARM_LEAD_S:
+                    self.statustext(f"companion {self.agent}: ready {time.time() - m.start_unix_s + ARM_LEAD_S:.1f} s "
+                                    f"late for the start", mavlink.MAV_SEVERITY_WARNING)
+                await asyncio.sleep(max(0.0, m.start_unix_s - ARM_LEAD_S - time.time()))
+                await self._arm()
             await asyncio.sleep(max(0.0, m.start_unix_s - time.time()))
-            self._begin_entry(m.start_unix_s)
+            if not self.fc.armed:
+                self.statustext(f"companion {self.agent}: start time reached; waiting to be armed")
+                while not self.fc.armed:
+                    await asyncio.sleep(0.05)
+            if self.fc.mode != CustomMode.EXTERNAL:  # e.g. hovering after the operator's takeoff
+                result = await self.fc_command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                               CustomMode.EXTERNAL)
+                if result != mavlink.MAV_RESULT_ACCEPTED:
+                    raise RuntimeError(f"the flight controller refused external control ({result})")
+                self.fc.mode = CustomMode.EXTERNAL
+            self._begin_entry(max(m.start_unix_s, self.fc_unix(self._last_sample.boot_ms)))
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
+            log.exception("plan start failed")
+            self._set_phase(Phase.IDLE, "")
+            self.statustext(f"companion {self.agent}: plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
+
+    def _release(self, reason: str) -> None:
+        """The flight controller took the vehicle back (the operator's land or hold, a disarm):
+        this flight of the plan is over."""
+        self.mission.phase = "done"
+        self.store.save(self.mission)
+        self._set_phase(Phase.IDLE, "")
+        self.statustext(f"companion {self.agent}: formation flight over: {reason}", mavlink.MAV_SEVERITY_WARNING)
 
     async def _arm(self) -> None:
         result = await self.fc_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
@@ -453,7 +611,7 @@ class Companion:
         """Back into the formation from the braking/held trajectory: the reference starts exactly
         where (and as fast as) the drone is meant to be, and its distance to the formation decays
         over REJOIN_S seconds, longer if the way back is long (peak acceleration REJOIN_ACCEL_M_S2)."""
-        source = RelativeTo(self._hold, self.plan.leader)
+        source = RelativeTo(self._hold, self.leader)
         t0 = t_plan + self.ctrl.lead_s  # references are evaluated at the time the estimates refer to
         target = self._flying or self.plan.formation  # the entry, if it is not over
         rejoin = Rejoin(source, target, t0, self.values["REJOIN_S"])
@@ -471,7 +629,8 @@ class Companion:
                 self._flying_since = time.monotonic()
             self.phase = phase
             status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(phase, AgentStatus.IDLE)
-            self.bus.publish_status(status, reason)
+            if hasattr(self, "bus"):
+                self.bus.publish_status(status, reason)
             if phase == Phase.HOLDING:
                 self.statustext(f"companion {self.agent}: holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
             elif phase == Phase.FLYING:
@@ -521,13 +680,13 @@ class Companion:
     def _tick(self, s: Sample) -> None:
         """First half of a tick: estimate, publish, and wait for the neighbours' estimates of the
         same instant (at most NB_WAIT_MS from now; see ``_finish_tick``)."""
-        if self.fc.max_rpm is None or self.plan is None:
+        if self.fc.max_rpm is None:
+            return
+        if self.phase in (Phase.IDLE, Phase.SCHEDULED):
+            if self.fc.armed and self.fc.landed and self.fc.mode == CustomMode.EXTERNAL:
+                self._send_actuators(*self._idle, s.t_rx)  # armed on the ground: idle, not the failsafe
             return
         self.bus.drain()
-        if self.phase in (Phase.IDLE, Phase.SCHEDULED):
-            if self.fc.armed and self.phase == Phase.SCHEDULED:
-                self._send_actuators(*self._idle, s.t_rx)
-            return
         y = np.concatenate([s.eta, s.position])[None, :]
         xhat = self.ctrl.observe(y)
         t_plan = self._plan_time(s)
@@ -537,7 +696,7 @@ class Companion:
         if self.phase == Phase.HOLDING:
             self._hold_step(s, xhat, t_plan)
             return
-        ref = reference_at(self._design, self.offsets, self.plan.leader_state, t_plan, lead, dt, rows=[i])
+        ref = reference_at(self._design, self.offsets, self._leader_state, t_plan, lead, dt, rows=[i])
         xi = xhat - ref.h
         self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
         topo = self.plan.schedule.at(ref.t_p)
@@ -592,8 +751,9 @@ class Companion:
                            topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
         self._actuate(v, w.sample)
         if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
-            formation, _ = self.plan.reference(w.ref.t_p)
-            self.health.formation_error.add(float(np.linalg.norm(w.xhat[0, 9:12] - formation[i, 9:12])))
+            h, _ = self.plan.formation.offsets(w.ref.t_p)
+            x0, _ = self._leader_state(w.ref.t_p)
+            self.health.formation_error.add(float(np.linalg.norm(w.xhat[0, 9:12] - h[i, 9:12] - x0[9:12])))
 
     def _hold_step(self, s: Sample, xhat: np.ndarray, t_plan: float) -> None:
         """Holding: pinned to its own absolute reference (the braking trajectory), no neighbours;
@@ -681,6 +841,8 @@ class Companion:
                 self._handle_for_me(link, msg)
 
     def _handle_for_me(self, link: MavLink, msg) -> None:
+        if self.plans.handle(link, msg, time.monotonic()):
+            return
         t = msg.get_type()
         if t == "PARAM_REQUEST_LIST":
             for k in range(len(self.values)):
@@ -698,6 +860,9 @@ class Companion:
 
     def _param_value(self, k: int):
         name = list(self.values)[k]
+        if name == "PLAN_T_S":  # the plan time now, for commands timed in it (NaN: no plan in force)
+            m = self.mission
+            self.values[name] = math.nan if m is None or m.start_unix_s is None else time.time() - m.start_unix_s
         return mavlink.MAVLink_param_value_message(name.encode(), float(self.values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
                                                    len(self.values), k)
 
@@ -717,17 +882,42 @@ class Companion:
         link.send(self._param_value(list(self.values).index(name)))
 
     def _command(self, link: MavLink, msg) -> None:
+        reason = ""
         if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             result = mavlink.MAV_RESULT_ACCEPTED
             link.send(self._heartbeat())
+        elif msg.command == mavlink.MAV_CMD_TRISWARM_PLAN_START:
+            if msg.get_type() != "COMMAND_INT":
+                result, reason = mavlink.MAV_RESULT_DENIED, "plan start needs COMMAND_INT (its time is in x and y)"
+            else:
+                result, reason = self._start_plan(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
+        elif msg.command in (mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD):
+            result, reason = self._leader_command(msg)
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
+        if reason:
+            self._say(reason, mavlink.MAV_SEVERITY_INFO if result == mavlink.MAV_RESULT_ACCEPTED else mavlink.MAV_SEVERITY_WARNING)
         link.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(),
                                                       msg.get_srcComponent()))
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """To the ground station; a text longer than 50 bytes goes in chunks (MAVLink 2 id, chunk_seq)."""
         log.info(text)
-        self.gcs_link.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
+        data = text.encode()
+        if len(data) <= 50:
+            self.gcs_link.send(mavlink.MAVLink_statustext_message(severity, data))
+            return
+        self._statustext_id = self._statustext_id % 0xFFFF + 1
+        for k in range(0, len(data) + 1, 50):  # (a text of a multiple of 50 ends with an empty chunk)
+            self.gcs_link.send(mavlink.MAVLink_statustext_message(severity, data[k:k + 50], self._statustext_id, k // 50))
+
+    def _say(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        self.statustext(f"companion {self.agent}: {text}", severity)
+
+    async def _poll_plans(self) -> None:
+        while True:
+            self.plans.poll(time.monotonic())
+            await asyncio.sleep(0.1)
 
     def _heartbeat(self):
         status = {Phase.HOLDING: mavlink.MAV_STATE_CRITICAL, Phase.FLYING: mavlink.MAV_STATE_ACTIVE}.get(
@@ -773,6 +963,13 @@ class Companion:
         if hasattr(self, "bus"):
             out["zenoh"] = self.bus.counts()
         return out
+
+
+def _mode_name(mode: int) -> str:
+    try:
+        return CustomMode(mode).name
+    except ValueError:
+        return f"mode {mode}"
 
 
 def default_start_time(now: float) -> float:

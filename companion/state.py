@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 
@@ -34,7 +34,9 @@ class Mission:
     start_unix_s: float | None = None
     """When the plan (its take-off) starts, common to the swarm; None: not scheduled."""
     phase: str = "idle"
-    """idle, scheduled or flying."""
+    """idle, scheduled, flying or done (the flight controller took the vehicle back)."""
+    leader_moves: list = field(default_factory=list)
+    """The operator's leader commands in force, in order (see companion.leader_with_moves)."""
 
 
 class StateStore:
@@ -54,6 +56,10 @@ class StateStore:
         except (OSError, ValueError, TypeError) as exc:
             self.problem = f"{self.path}: unusable saved mission ({exc.__class__.__name__}), starting without it"
             return None
+
+    def clear(self) -> None:
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
 
     def save(self, mission: Mission) -> None:
         if self.path is not None:

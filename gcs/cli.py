@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
 import math
 import sys
@@ -10,36 +9,17 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.design import FormationError
 from triswarm.protocol.frames import DEFAULT_HOME
-from triswarm.protocol.graph import GraphError
-from triswarm.protocol.plan import PlanError
+
+from .errors import UserError, console, err_console, user_errors
+from .plan_cmd import plan_app
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
                   help="triswarm: formation flight for swarms of tri-rotor drones.")
-console = Console()
-err_console = Console(stderr=True)
-
-USER_ERRORS = (PlanError, ParameterError, FormationError, GraphError, ValueError, FileNotFoundError)
-
-
-class UserError(Exception):
-    """A mistake in what the operator asked for (exit status 2)."""
-
-
-@contextlib.contextmanager
-def user_errors():
-    """Turn a user's mistake into one sentence on stderr and exit status 2, never a traceback."""
-    try:
-        yield
-    except (UserError, *USER_ERRORS) as exc:
-        err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=2) from None
+app.add_typer(plan_app, name="plan")
 
 
 def _version(value: bool) -> None:
@@ -257,6 +237,15 @@ def sitl_up(
         console.print(f"stopped after {result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
                       f"(speedup {result['speedup_achieved'] or 0:.2f}); dropped frames per vehicle: "
                       f"{', '.join(dropped) if dropped else 'none'}", soft_wrap=True)
+
+
+from .plot_cmd import plot  # noqa: E402
+from .swarm_cmd import register  # noqa: E402
+from .demo import demo  # noqa: E402
+
+app.command("plot")(plot)
+app.command("demo")(demo)
+register(app, plan_app)
 
 
 def main() -> None:

@@ -14,27 +14,29 @@ def builtin_names() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
-def read_plan_spec(name_or_path: str) -> tuple[dict, str]:
-    """The plan dict and a label for messages. Raises PlanError for a missing or malformed file."""
+def plan_text(name_or_path: str) -> str:
+    """The TOML text of a plan file or a built-in scenario; PlanError if there is none."""
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
-        label = str(path)
         try:
-            text = path.read_text(encoding="utf-8")
+            return path.read_text(encoding="utf-8")
         except FileNotFoundError:
-            raise PlanError(f"{label}: no such plan file") from None
+            raise PlanError(f"{path}: no such plan file") from None
         except (OSError, UnicodeDecodeError) as exc:
-            raise PlanError(f"{label}: cannot read the plan file ({exc.__class__.__name__})") from None
-    else:
-        if name_or_path not in builtin_names():
-            raise PlanError(f"{name_or_path}: not a plan file and not a built-in scenario "
-                            f"(built-in: {', '.join(builtin_names())})")
-        label = name_or_path
-        text = resources.files("triswarm.protocol").joinpath("plans", f"{name_or_path}.toml").read_text(encoding="utf-8")
+            raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
+    if name_or_path not in builtin_names():
+        raise PlanError(f"{name_or_path}: not a plan file and not a built-in scenario "
+                        f"(built-in: {', '.join(builtin_names())})")
+    return resources.files("triswarm.protocol").joinpath("plans", f"{name_or_path}.toml").read_text(encoding="utf-8")
+
+
+def read_plan_spec(name_or_path: str) -> tuple[dict, str]:
+    """The plan dict and a label for messages. Raises PlanError for a missing or malformed file."""
+    text = plan_text(name_or_path)
     try:
-        return tomllib.loads(text), label
+        return tomllib.loads(text), name_or_path
     except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"{label}: not valid TOML ({exc})") from None
+        raise PlanError(f"{name_or_path}: not valid TOML ({exc})") from None
 
 
 def load_plan(name_or_path: str, drones: int | None = None) -> Plan:

@@ -42,9 +42,11 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[i
 
 @dataclass
 class Stack:
-    """SITL and companions for a plan. Use as a context manager."""
+    """SITL and companions. Use as a context manager. With a plan file, the companions take it and
+    start it by themselves at a common time (``--autostart``); without, they wait for the ground
+    station. ``swarm.json`` in the work folder lists each companion's ground-station endpoint."""
 
-    plan_path: Path
+    plan_path: Path | None
     workdir: Path
     n: int
     start_delay_s: float = 12.0
@@ -86,14 +88,23 @@ class Stack:
         self.start_at = time.time() + self.start_delay_s
         for i in range(1, self.n + 1):
             self.start_companion(i)
+        from .link import write_manifest
+
+        self.swarm_manifest = self.workdir / "swarm.json"
+        write_manifest(self.swarm_manifest, Path(self.plan_path).stem if self.plan_path else "triswarm", self.endpoints())
         return self
+
+    def endpoints(self) -> dict[int, str]:
+        """The ground station's URL of each companion."""
+        return {i: f"udpout:127.0.0.1:{self.gcs_ports[i - 1]}" for i in range(1, self.n + 1)}
 
     def companion_cmd(self, i: int) -> list[str]:
         v = self.manifest["vehicles"][i - 1]
+        plan = [] if self.plan_path is None else ["--plan", str(self.plan_path), "--autostart",
+                                                  "--start-at", f"{self.start_at:.3f}"]
         return [sys.executable, "-m", "triswarm.companion.cli", "--id", str(i),
                 "--fc", v["links"]["companion"]["pymavlink"], "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}",
-                "--plan", str(self.plan_path), "--autostart", "--start-at", f"{self.start_at:.3f}",
-                "--zenoh-base-port", str(self.zenoh_base), "--rate-hz", str(self.rate_hz),
+                *plan, "--zenoh-base-port", str(self.zenoh_base), "--rate-hz", str(self.rate_hz),
                 "--state-dir", str(self.workdir / "state" / str(i)), "--stats", str(self.workdir / "stats" / f"{i}.json"),
                 *self.companion_args.get(i, [])]
 

@@ -405,3 +405,55 @@ class QuinticTransfer(Formation):
         tau = t_s - self.t0_s
         (pe, pv, pa), (ee, ev, ea) = (_quintic_eval(c, tau) for c in self._coeffs)
         return Kinematics(self.p1 + pe, pv, pa, self.eta1 + ee, ev, ea)
+
+
+LEADER_MAX_YAW_RATE_RAD_S = 0.5
+"""Peak yaw rate of a leader move [rad/s]."""
+
+
+@dataclass(frozen=True)
+class LeaderMove(Formation):
+    """The leader x0 (a one-agent formation): ``base`` until ``at_s``, then a quintic from wherever
+    base is then (moving or not) to rest at ``target_m`` with a peak speed of ``speed_m_s``, or, with
+    no target, a stop at the braking point. The yaw goes to ``yaw_rad`` (None: kept); roll and
+    pitch keep the base's values at ``at_s``. Every companion builds the same move from the same
+    command, so the swarm's leader stays one."""
+
+    base: Formation
+    at_s: float
+    target_m: tuple[float, float, float] | None
+    yaw_rad: float | None
+    speed_m_s: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.at_s) and math.isfinite(self.speed_m_s) and self.speed_m_s > 0):
+            raise ParameterError(f"a leader move needs a finite time and a positive speed, got {self.speed_m_s!r} m/s")
+        k = self.base.kinematics(self.at_s)
+        p0, v0, eta0 = k.p[0], k.p_dot[0], k.eta[0]
+        if self.target_m is None:
+            duration = max(2.0, float(np.linalg.norm(v0)) / 2.0)
+            p1 = p0 + v0 * duration / 2.0  # the stopping point of a quintic with no acceleration at the ends
+        else:
+            p1 = np.asarray(self.target_m, dtype=float)
+            if p1.shape != (3,) or not np.all(np.isfinite(p1)):
+                raise ParameterError(f"a leader target must be three finite numbers, got {self.target_m!r}")
+            duration = 1.875 * float(np.linalg.norm(p1 - p0)) / self.speed_m_s  # a quintic peaks at 1.875 d / T
+        eta1 = eta0.copy()
+        if self.yaw_rad is not None:
+            if not math.isfinite(self.yaw_rad):
+                raise ParameterError(f"a leader yaw must be finite, got {self.yaw_rad!r}")
+            eta1[2] = self.yaw_rad
+            duration = max(duration, 1.875 * abs(eta1[2] - eta0[2]) / LEADER_MAX_YAW_RATE_RAD_S)
+        object.__setattr__(self, "_move", QuinticTransfer(p0, v0, p1, eta0, k.eta_dot[0], eta1, self.at_s,
+                                                          max(1.0, duration)))
+
+    @property
+    def n_agents(self) -> int:
+        return 1
+
+    @property
+    def end_s(self) -> float:
+        return self._move.end_s
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        return self.base.kinematics(t_s) if t_s < self.at_s else self._move.kinematics(t_s)

@@ -1,8 +1,9 @@
 """The MAVLink conventions shared by the SITL flight controllers and the companions.
 
 The dialect is chosen here, once: everything in triswarm that speaks MAVLink imports ``mavlink``
-from this module (pymavlink's generated MAVLink 2 module), never through pymavlink's environment
-variables.
+from this module, never through pymavlink's environment variables. It is triswarm's dialect
+(``protocol/dialect/triswarm.xml``: common.xml plus the plan and leader commands), generated with
+pymavlink's own generator; its messages are common.xml's, byte for byte.
 
 Custom modes (HEARTBEAT.custom_mode, with MAV_MODE_FLAG_CUSTOM_MODE_ENABLED in base_mode):
 
@@ -27,9 +28,10 @@ import enum
 from dataclasses import dataclass
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink  # noqa: F401  (the dialect, chosen once)
-
 from . import frames
+from .dialect import load as _load_dialect
+
+mavlink = _load_dialect()  # the dialect, chosen once
 
 ACTUATOR_GROUP = 0
 COMP_AUTOPILOT = mavlink.MAV_COMP_ID_AUTOPILOT1

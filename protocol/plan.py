@@ -1,7 +1,6 @@
 """A formation plan: who flies, where, over which graphs, with which design weights.
 
-Built from a plain dict (what ``tomllib`` gives for a plan file); reading the file is the caller's
-business. Every mistake a user can make raises ``PlanError`` with one sentence naming the source,
+Built from a plain dict (what ``tomllib`` gives for a plan file, see ``read_plan_file``). Every mistake a user can make raises ``PlanError`` with one sentence naming the source,
 the field and, where it applies, the drone (numbered from 1).
 
 Schema (all sections but ``formation`` optional; units in the field names):
@@ -23,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -186,6 +186,9 @@ class _Fields:
         try:
             arr = np.array(value, dtype=float)
         except (TypeError, ValueError):
+            i = _bad_row(value, shape[1:]) if per_drone is not None and isinstance(value, list) else None
+            if i is not None:
+                raise PlanError(f"{self.where(key)}: drone {i + 1} must have {shape[-1]} numbers, got {value[i]!r}") from None
             raise PlanError(f"{self.where(key)} must be numbers, got {value!r}") from None
         if per_drone is not None and arr.shape == shape[1:]:
             arr = np.tile(arr, (per_drone,) + (1,) * len(shape[1:]))
@@ -202,6 +205,17 @@ class _Fields:
         unknown = sorted(set(self.data) - self.used)
         if unknown:
             raise PlanError(f"{self.where(unknown[0])} is not a known field")
+
+
+def _bad_row(rows: list, row_shape: tuple[int, ...]) -> int | None:
+    """Index of the first entry of a per-drone list that is not numbers of ``row_shape``."""
+    for i, row in enumerate(rows):
+        try:
+            if np.array(row, dtype=float).shape != row_shape:
+                return i
+        except (TypeError, ValueError):
+            return i
+    return None
 
 
 def _airframe(f: _Fields) -> Airframe:
@@ -226,6 +240,8 @@ def _attitudes(f: _Fields, n: int) -> np.ndarray:
 
 def _formation(f: _Fields, n: int) -> Formation:
     kind = f.get("type")
+    if kind is None:
+        raise PlanError(f"{f.where('type')} is required: \"rotating-polygon\", \"constant\" or \"keyframes\"")
     try:
         if kind == "rotating-polygon":
             out = RotatingPolygon(n, f.number("radius_m", non_negative=True), f.number("altitude_m"),
@@ -246,6 +262,9 @@ def _formation(f: _Fields, n: int) -> Formation:
             for k, frame in enumerate(frames):
                 kf = _Fields(f.source, f"{f.section}.keyframes[{k}]", frame)
                 times.append(kf.number("t_s"))
+                if k and times[-1] <= times[-2]:
+                    raise PlanError(f"{kf.where('t_s')} must be later than the keyframe before it ({times[-2]:g} s), "
+                                    f"got {times[-1]:g} s")
                 pos.append(kf.array("position_m", (n, 3), per_drone=n))
                 att.append(_attitudes(kf, n))
                 kf.done()
@@ -321,6 +340,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     if not isinstance(name, str) or not name:
         raise PlanError(f"{source}: name must be a non-empty string")
     n = top.get("drones")
+    if n is None:
+        raise PlanError(f"{source}: drones is required")
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise PlanError(f"{source}: drones must be a whole number of at least 1, got {n!r}")
     af = _airframe(_Fields(source, "airframe", top.get("airframe")))
@@ -343,3 +364,17 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     cf.done()
     top.done()
     return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, source, dict(data))
+
+
+def read_plan_file(path) -> dict:
+    """The dict of a plan file (TOML); PlanError naming the file if it is missing or malformed."""
+    from pathlib import Path
+
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PlanError(f"{path}: no such plan file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise PlanError(f"{path}: not valid TOML ({exc})") from None

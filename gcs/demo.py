@@ -1,0 +1,97 @@
+"""`triswarm demo`: the paper's case study, whole stack, on this machine, driven as an operator would.
+
+`sitl up -n 6` and six companions as processes on loopback; the ground station uploads the plan
+over MAVLink, arms, takes off, starts the plan at one common time, lets the formation fly, lands,
+disarms and stops every process. The run folder gets gcs.tlog (everything the ground station
+received), plan.toml, run.json, and from the log (`triswarm plot`) telemetry.csv, summary.json and
+the figures. Exit 0 only if the formation met the bounds over [25 s, end].
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn
+
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
+from triswarm.protocol.plan import plan_from_dict
+from triswarm.protocol.plan_transfer import decode_plan, encode_plan
+
+from .errors import console, err_console, user_errors
+from .link import GroundLink
+from .plot_cmd import plot
+from .scenarios import read_plan_spec, plan_text
+from .stack import Stack
+from .swarm_cmd import command_all, start_all, upload_all
+
+STARTUP_S = 120.0  # companions load numba kernels and open Zenoh; two busy cores can take a while
+
+
+def _step(title: str, outcomes: dict) -> None:
+    bad = {i: detail for i, (ok, detail) in outcomes.items() if not ok}
+    console.print(f"{title}: " + ("[green]all drones[/]" if not bad else f"[red]refused by {bad}[/]"), soft_wrap=True)
+    if bad:
+        raise typer.Exit(code=1)
+
+
+def _wait(what: str, cond, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            err_console.print(f"triswarm demo: {what} did not happen within {timeout_s:g} s")
+            raise typer.Exit(code=1)
+        time.sleep(0.1)
+
+
+def demo(
+    plan_name: Annotated[str, typer.Option("--plan", help="Built-in scenario or plan file.")] = "paper-hexagon",
+    duration_s: Annotated[float, typer.Option("--duration-s", help="Plan time to fly before landing [s].")] = 50.0,
+    out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
+) -> None:
+    """The paper's case study, whole stack, on this machine (sitl, six companions, the ground station)."""
+    with user_errors():
+        spec, label = read_plan_spec(plan_name)
+        plan = plan_from_dict(spec, label)
+        plan.check(horizon_s=duration_s)
+    items = encode_plan(plan.spec)
+    pid = decode_plan(items)[1]
+    run = out or Path("runs") / _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "plan.toml").write_text(plan_text(plan_name), encoding="utf-8")
+    n = plan.n_agents
+    console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
+    with Stack(None, run / "stack", n) as stack, GroundLink(stack.endpoints(), tlog=run / "gcs.tlog") as link:
+        ids = list(range(1, n + 1))
+        console.print(f"sitl and {n} companions started (logs in {run / 'stack' / 'logs'})")
+        _wait("every companion's heartbeat", lambda: all(link.companion(i).heartbeat for i in ids)
+              and all(link.autopilot(i).heartbeat for i in ids), STARTUP_S)
+        _step("plan upload", upload_all(link, ids, items))
+        _step("arm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0]))
+        _step("takeoff", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0] + [float("nan")] * 4))
+        _wait("hover after takeoff", lambda: all(link.autopilot(i).heartbeat.custom_mode == CustomMode.HOLD for i in ids), 30.0)
+        start = time.time() + 3.0
+        _step("plan start", start_all(link, ids, pid, start))
+        (run / "run.json").write_text(json.dumps({"start_unix_s": start, "plan_id": pid, "drones": n,
+                                                  "endpoints": stack.endpoints()}, indent=2) + "\n", encoding="utf-8")
+        with Progress(TextColumn("formation flight"), BarColumn(), TextColumn("t = {task.completed:5.1f} / {task.total:g} s"),
+                      TextColumn("{task.fields[errors]}"), console=console) as bar:
+            task = bar.add_task("", total=duration_s, errors="")
+            while (t := time.time() - start) < duration_s:
+                errs = [link.companion(i).named.get("FORM_ERRM", (float("nan"),))[0] for i in ids]
+                bar.update(task, completed=max(0.0, t), errors="error " + " ".join(f"{e:.2f}" for e in errs) + " m")
+                time.sleep(0.25)
+            bar.update(task, completed=duration_s)
+        info = json.loads((run / "run.json").read_text())
+        info["formation_end_s"] = time.time() - start
+        (run / "run.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+        _step("land", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_LAND, []))
+        _wait("landing and disarm", lambda: all(not link.autopilot(i).heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+                                                for i in ids), 60.0)
+        _step("disarm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]))
+    console.print("every process stopped; making the figures from the log")
+    plot(run)

@@ -1,0 +1,143 @@
+"""`triswarm plot RUN`: the figures and data of a whole-stack run, from its ground station's MAVLink log."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from triswarm.protocol import metrics
+
+from .errors import UserError, console, user_errors
+from .scenarios import load_plan
+
+if TYPE_CHECKING:
+    from .runlog import RunLog
+
+RUN_FILES = ("gcs.tlog", "plan.toml", "run.json")
+LOG_HZ = 50.0
+
+
+def plot(
+    run: Annotated[Path, typer.Argument(help="Run folder with gcs.tlog, plan.toml and run.json.")],
+    window_start_s: Annotated[float, typer.Option("--window-start-s", help="Judge the formation over [S, end] of plan time [s].")] = 25.0,
+    end_s: Annotated[Optional[float], typer.Option("--end-s", help="End of the formation flight in plan time [s] "
+                                                   "(default: run.json's formation_end_s, else the end of the log).")] = None,
+    position_bound_m: Annotated[float, typer.Option("--position-bound-m", help="Position bound for the verdict [m].")] = 0.10,
+    attitude_bound_rad: Annotated[float, typer.Option("--attitude-bound-rad", help="Attitude bound for the verdict [rad].")] = 0.02,
+) -> None:
+    """Write RUN/telemetry.csv, RUN/summary.json and the figures from RUN/gcs.tlog; exit 1 if the
+    formation missed the bounds."""
+    from . import plots, report
+    from .runlog import read_run_log
+
+    with user_errors():
+        if not math.isfinite(window_start_s):
+            raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
+        for name, value in (("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
+            if not (math.isfinite(value) and value > 0):
+                raise UserError(f"--{name} must be a positive number, got {value}")
+        if not run.is_dir():
+            raise UserError(f"{run}: no such run folder")
+        for name in RUN_FILES:
+            if not (run / name).is_file():
+                raise UserError(f"{run}: not a run folder: it has no {name}")
+        start_unix_s = _start_unix_s(run / "run.json")
+        if end_s is None:
+            end_s = json.loads((run / "run.json").read_text(encoding="utf-8")).get("formation_end_s")
+        plan = load_plan(str(run / "plan.toml"))
+        design = plan.design
+        try:
+            log = read_run_log(run / "gcs.tlog", plan.n_agents, start_unix_s, LOG_HZ)
+        except OSError as exc:
+            raise UserError(f"{run / 'gcs.tlog'}: cannot read it ({exc.strerror})") from None
+
+    if end_s is not None:  # the landing is not formation flight
+        keep = log.t_s <= end_s
+        log = dataclasses.replace(log, t_s=log.t_s[keep], position_m=log.position_m[keep], euler_rad=log.euler_rad[keep])
+    pos_err, att_err = metrics.formation_errors(plan, log.t_s, log.position_m, log.euler_rad)
+    perf = metrics.assess(log.t_s, pos_err, att_err, window_start_s=window_start_s, position_bound_m=position_bound_m,
+                          attitude_bound_rad=attitude_bound_rad)
+    per_drone = _per_drone(log, pos_err, att_err, perf)
+    run_entry = {
+        "source": "tlog", "tlog": "gcs.tlog", "start_unix_s": start_unix_s, "log_hz": LOG_HZ,
+        "span_s": [float(log.t_s[0]), float(log.t_s[-1])], "frames": log.tlog.frames,
+        "skipped_bytes": log.tlog.skipped_bytes, "skipped_runs": log.tlog.skipped_runs,
+    }
+    with user_errors():
+        try:
+            report.write_summary(run / "summary.json", plan=plan, design=design, performance=perf, run=run_entry,
+                                 per_drone=per_drone)
+            report.write_telemetry(run / "telemetry.csv", log.t_s, log.position_m, log.euler_rad)
+            fig_paths = plots.make_figures(run, plan, log.t_s, log.position_m, log.euler_rad, perf)
+        except OSError as exc:
+            raise UserError(f"{run}: cannot write the outputs ({exc.strerror})") from None
+
+    _print_result(plan.name, perf, per_drone, log, run, fig_paths)
+    if not perf.within_bounds:
+        raise typer.Exit(code=1)
+
+
+def _start_unix_s(path: Path) -> float:
+    try:
+        start = json.loads(path.read_text(encoding="utf-8")).get("start_unix_s")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        raise UserError(f"{path}: cannot be read as a JSON object") from None
+    if isinstance(start, bool) or not isinstance(start, (int, float)) or not math.isfinite(start):
+        raise UserError(f"{path}: start_unix_s must be the plan's start as a number of Unix seconds, got {start!r}")
+    return float(start)
+
+
+def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metrics.Performance) -> list[dict]:
+    in_window = log.t_s >= perf.window_start_s
+    rows = []
+    for i, drone in enumerate(log.drones):
+        worst_pos_m = float(pos_err[in_window, i].max()) if in_window.any() else None
+        worst_att_rad = float(att_err[in_window, i].max()) if in_window.any() else None
+        rows.append({
+            "drone": i + 1,
+            "worst_position_error_m": worst_pos_m,
+            "worst_attitude_error_rad": worst_att_rad,
+            "within_bounds": worst_pos_m is not None and worst_pos_m <= perf.position_bound_m
+                             and worst_att_rad <= perf.attitude_bound_rad,
+            "attitude_samples": drone.attitude_samples,
+            "position_samples": drone.position_samples,
+            "largest_gap_s": drone.largest_gap_s,
+            "clock": drone.clock,
+        })
+    return rows
+
+
+def _num(x: float | None) -> str:
+    if x is None or not math.isfinite(x):
+        return "-"
+    return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"
+
+
+def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], log: RunLog, run: Path,
+                  fig_paths: list[Path]) -> None:
+    table = Table(title=f"{name}: worst errors over [{perf.window_start_s:g} s, {log.t_s[-1]:.1f} s] of the flight "
+                        f"controllers' telemetry")
+    table.add_column("drone", justify="right")
+    table.add_column("pos [m]", justify="right")
+    table.add_column("att [rad]", justify="right")
+    table.add_column("largest gap [s]", justify="right")
+    table.add_column("verdict")
+    for row in per_drone:
+        table.add_row(str(row["drone"]), _num(row["worst_position_error_m"]), _num(row["worst_attitude_error_rad"]),
+                      f"{row['largest_gap_s']:.2f}", "[green]within[/]" if row["within_bounds"] else "[red]outside[/]")
+    console.print(table)
+    verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
+    console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
+                  f"(worst {_num(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
+                  f"{_num(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
+    if log.tlog.skipped_bytes:
+        console.print(f"gcs.tlog: {log.tlog.frames} frames read; {log.tlog.skipped_bytes} bytes skipped "
+                      f"in {log.tlog.skipped_runs} places (garbage or broken frames)")
+    console.print(f"outputs in {run}/: summary.json, telemetry.csv" + "".join(f", {p.name}" for p in fig_paths))

@@ -1,0 +1,272 @@
+"""The operator's commands to a flying swarm, over MAVLink: plan upload / download / clear, leader
+goto / hold, and arm, takeoff, land, disarm, for one drone (--id) or all."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Annotated, Callable, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.table import Table
+
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
+from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, encode_plan
+
+from . import missions
+from .errors import UserError, console, err_console, user_errors
+from .link import GroundLink, LinkError, parse_endpoints
+
+Manifest = Annotated[Optional[Path], typer.Option("--manifest", envvar="TRISWARM_MANIFEST",
+                                                  help="Swarm manifest (swarm.json) with each drone's MAVLink endpoint.")]
+Drones = Annotated[Optional[list[str]], typer.Option("--drone", help="A drone's endpoint as ID=URL (repeat), "
+                                                     "e.g. 1=udpout:192.168.1.11:14550.")]
+Ids = Annotated[Optional[list[int]], typer.Option("--id", help="Only this drone (repeat); default: all.")]
+Tlog = Annotated[Path, typer.Option("--tlog", help="Append every MAVLink message received to this .tlog.")]
+DEFAULT_TLOG = Path("gcs.tlog")
+LINK_WAIT_S = 5.0
+
+leader_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
+                         help="Move the formation's leader x0 (the whole formation follows).")
+
+
+@contextlib.contextmanager
+def swarm_link(manifest: Path | None, drone: list[str] | None, ids: list[int] | None, tlog: Path):
+    """The link to the selected drones, once each companion's heartbeat is heard."""
+    with user_errors():
+        try:
+            endpoints = parse_endpoints(manifest, drone)
+        except LinkError as exc:
+            raise UserError(str(exc)) from None
+        unknown = sorted(set(ids or []) - set(endpoints))
+        if unknown:
+            raise UserError(f"--id {unknown[0]}: not in the swarm (drones {', '.join(map(str, sorted(endpoints)))})")
+        chosen = sorted(ids or endpoints)
+        try:
+            link = GroundLink({i: endpoints[i] for i in chosen}, tlog=tlog)
+        except (LinkError, OSError) as exc:
+            raise UserError(str(exc)) from None
+    with link:
+        deadline = time.monotonic() + LINK_WAIT_S
+        while time.monotonic() < deadline and not all(link.companion(i).heartbeat for i in chosen):
+            time.sleep(0.05)
+        silent = [i for i in chosen if link.companion(i).heartbeat is None]
+        if silent:
+            err_console.print(f"triswarm: error: no heartbeat from the companion of drone "
+                              f"{', '.join(map(str, silent))} in {LINK_WAIT_S:g} s "
+                              f"({', '.join(link.endpoints[i] for i in silent)})", soft_wrap=True)
+            raise typer.Exit(code=1)
+        yield link, chosen
+
+
+def for_each(chosen: list[int], fn: Callable[[int], tuple[bool, str]]) -> dict[int, tuple[bool, str]]:
+    with ThreadPoolExecutor(max_workers=len(chosen)) as pool:
+        return dict(zip(chosen, pool.map(fn, chosen)))
+
+
+def report(title: str, outcomes: dict[int, tuple[bool, str]]) -> None:
+    """A table of what each drone answered; exit 1 if any refused or did not answer."""
+    table = Table(title=title, title_justify="left")
+    table.add_column("drone", justify="right")
+    table.add_column("result")
+    table.add_column("detail")
+    for i, (ok, detail) in sorted(outcomes.items()):
+        table.add_row(str(i), "[green]ok[/]" if ok else "[red]refused[/]", detail)
+    console.print(table)
+    if not all(ok for ok, _ in outcomes.values()):
+        raise typer.Exit(code=1)
+
+
+def result_text(result: int | None, reasons: str) -> tuple[bool, str]:
+    if result is None:
+        return False, reasons or "no answer"
+    name = mavlink.enums["MAV_RESULT"][result].name.removeprefix("MAV_RESULT_") if result in mavlink.enums["MAV_RESULT"] else str(result)
+    return result == mavlink.MAV_RESULT_ACCEPTED, reasons or name.lower()
+
+
+# -- plans --------------------------------------------------------------------------------------
+
+def upload(
+    file: Annotated[str, typer.Argument(help="Plan file (TOML) or built-in scenario name.")],
+    manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+    start_in_s: Annotated[float, typer.Option("--start-in-s", help="Start the plan this long after the upload [s].")] = 10.0,
+    no_start: Annotated[bool, typer.Option("--no-start", help="Upload only; the plan in force stays.")] = False,
+) -> None:
+    """Check a plan, upload it to every drone's companion, and start it at one common time.
+
+    The plan starts only if every drone accepted it; otherwise the plan in force stays in force."""
+    from .scenarios import load_plan
+
+    with user_errors():
+        if not (math.isfinite(start_in_s) and start_in_s >= 1.0):
+            raise UserError(f"--start-in-s must be at least 1 s, got {start_in_s}")
+        plan = load_plan(file)
+        plan.check()
+        try:
+            items = encode_plan(plan.spec)
+        except PlanTransferError as exc:
+            raise UserError(f"{file}: {exc}") from None
+    pid = decode_plan(items)[1]
+    with swarm_link(manifest, drone, id, tlog) as (link, chosen):
+        outside = [i for i in chosen if i > plan.n_agents]
+        if outside:
+            raise typer.Exit(_refuse(f"{file}: the plan has {plan.n_agents} drones; drone {outside[0]} is not one of them"))
+        outcomes = upload_all(link, chosen, items)
+        if no_start or not all(ok for ok, _ in outcomes.values()):
+            report(f"plan {plan.name} ({pid:08x}) uploaded, not started" if no_start else
+                   f"plan {plan.name} ({pid:08x}): not started, the plan in force stays", outcomes)
+            return
+        start = time.time() + start_in_s
+        report(f"plan {plan.name} ({pid:08x}) starts at {time.strftime('%H:%M:%S', time.localtime(start))}",
+               start_all(link, chosen, pid, start))
+
+
+def upload_all(link: GroundLink, chosen: list[int], items) -> dict[int, tuple[bool, str]]:
+    """The items to every chosen drone at once, a progress bar each."""
+    with Progress(TextColumn("drone {task.fields[drone]}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[state]}"),
+                  console=console) as bars:
+        tasks = {i: bars.add_task("", total=len(items), drone=i, state="") for i in chosen}
+
+        def send(i: int) -> tuple[bool, str]:
+            out = missions.upload(link, i, items, progress=lambda k: bars.update(tasks[i], completed=k))
+            bars.update(tasks[i], state="accepted" if out.ok else "[red]refused[/]")
+            return out.ok, out.detail
+
+        return for_each(chosen, send)
+
+
+def start_all(link: GroundLink, chosen: list[int], pid: int, start_unix_s: float) -> dict[int, tuple[bool, str]]:
+    """MAV_CMD_TRISWARM_PLAN_START to every chosen drone: the plan in force from start_unix_s."""
+    return for_each(chosen, lambda i: result_text(*link.command(
+        i, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF], use_int=True,
+        x=int(start_unix_s), y=int(round((start_unix_s % 1.0) * 1000.0)) % 1000)))
+
+
+def command_all(link: GroundLink, chosen: list[int], compid: int, command: int, params: list[float]) -> dict:
+    return for_each(chosen, lambda i: result_text(*link.command(i, compid, command, params)))
+
+
+def _refuse(sentence: str) -> int:
+    err_console.print(f"triswarm: error: {sentence}", markup=False, highlight=False, soft_wrap=True)
+    return 2
+
+
+def download(
+    id: Annotated[int, typer.Option("--id", help="The drone to read the plan from.")],
+    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
+    out: Annotated[Optional[Path], typer.Option(help="Write the plan here (TOML); default: print it.")] = None,
+) -> None:
+    """Read back the plan a drone holds (the one in force, else the one waiting for its start)."""
+    import tomli_w
+
+    with swarm_link(manifest, drone, [id], tlog) as (link, _):
+        try:
+            items = missions.download(link, id)
+        except (missions.NoAnswer, PlanTransferError) as exc:
+            raise typer.Exit(_refuse(f"drone {id}: {exc}"))
+    if not items:
+        console.print(f"drone {id} holds no plan")
+        return
+    try:
+        spec, pid = decode_plan(items)
+    except PlanTransferError as exc:
+        raise typer.Exit(_refuse(f"drone {id}: {exc}"))
+    text = f"# plan {pid:08x}, downloaded from drone {id}\n" + tomli_w.dumps(spec)
+    if out is None:
+        console.print(text, markup=False, highlight=False)
+    else:
+        out.write_text(text, encoding="utf-8")
+        console.print(f"drone {id}: plan {spec.get('name', '?')} ({pid:08x}, {len(items)} items) written to {out}")
+
+
+def clear(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG) -> None:
+    """Clear the plans the companions hold (refused while flying)."""
+    with swarm_link(manifest, drone, id, tlog) as (link, chosen):
+        report("plan clear", for_each(chosen, lambda i: (lambda o: (o.ok, o.detail))(missions.clear(link, i))))
+
+
+# -- the leader ---------------------------------------------------------------------------------
+
+def _leader(link: GroundLink, chosen: list[int], command: int, params: list[float], lead_s: float) -> dict:
+    """Send a leader command timed lead_s ahead in plan time (read from the first drone)."""
+    t_plan = link.param(chosen[0], COMP_ONBOARD, "PLAN_T_S")
+    if t_plan is None or math.isnan(t_plan):
+        raise typer.Exit(_refuse(f"drone {chosen[0]}: no plan in force (upload and start one first)"))
+    params = params[:2] + [t_plan + lead_s] + params[3:]
+    return command_all(link, chosen, COMP_ONBOARD, command, params)
+
+
+@leader_app.command("goto")
+def leader_goto(
+    x_m: Annotated[float, typer.Argument(help="x [m], north of home (the plan's earth frame: x north, y west, z up).")],
+    y_m: Annotated[float, typer.Argument(help="y [m], west of home.")],
+    z_m: Annotated[float, typer.Argument(help="z [m], up from home.")],
+    yaw: Annotated[Optional[float], typer.Option("--yaw", help="Leader yaw at the end [deg] (default: kept).")] = None,
+    speed: Annotated[float, typer.Option("--speed", help="Peak speed [m/s].")] = 2.0,
+    lead_s: Annotated[float, typer.Option("--lead-s", help="Start the move this long from now [s], on every drone at once.")] = 1.0,
+    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
+) -> None:
+    """Move the leader (and with it the formation) to a point, at a peak speed."""
+    with user_errors():
+        for name, v in (("X", x_m), ("Y", y_m), ("Z", z_m), ("--yaw", yaw or 0.0), ("--lead-s", lead_s)):
+            if not math.isfinite(v):
+                raise UserError(f"{name} must be a finite number, got {v}")
+        if not (math.isfinite(speed) and 0 < speed <= 20):
+            raise UserError(f"--speed must be in (0, 20] m/s, got {speed}")
+    with swarm_link(manifest, drone, None, tlog) as (link, chosen):
+        yaw_rad = math.nan if yaw is None else math.radians(yaw)
+        report(f"leader goto {x_m:g} {y_m:g} {z_m:g}", _leader(link, chosen, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
+                                                               [speed, yaw_rad, 0.0, 0.0, x_m, y_m, z_m], lead_s))
+
+
+@leader_app.command("hold")
+def leader_hold(
+    lead_s: Annotated[float, typer.Option("--lead-s", help="Stop this long from now [s], on every drone at once.")] = 0.5,
+    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
+) -> None:
+    """Stop the leader where it is (it brakes to rest)."""
+    with swarm_link(manifest, drone, None, tlog) as (link, chosen):
+        report("leader hold", _leader(link, chosen, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD, [0.0, 0.0, 0.0], lead_s))
+
+
+# -- vehicles -----------------------------------------------------------------------------------
+
+def _vehicles(title: str, command: int, params: list[float], manifest, drone, id, tlog) -> None:
+    with swarm_link(manifest, drone, id, tlog) as (link, chosen):
+        report(title, command_all(link, chosen, COMP_AUTOPILOT, command, params))
+
+
+def arm(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG) -> None:
+    """Arm the flight controllers (on the ground)."""
+    _vehicles("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], manifest, drone, id, tlog)
+
+
+def disarm(force: Annotated[bool, typer.Option(help="Disarm in the air too (the rotors stop: it falls).")] = False,
+           manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG) -> None:
+    """Disarm the flight controllers (on the ground, unless --force)."""
+    _vehicles("disarm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0, 21196.0 if force else 0.0], manifest, drone, id, tlog)
+
+
+def takeoff(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG) -> None:
+    """Take off with the flight controllers' own controller to their TKO_ALT_M and hover (a plan
+    starting later takes over from there)."""
+    _vehicles("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, math.nan, math.nan, math.nan, math.nan],
+              manifest, drone, id, tlog)
+
+
+def land(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG) -> None:
+    """Land where they are (the flight controllers take over; the formation flight ends)."""
+    _vehicles("land", mavlink.MAV_CMD_NAV_LAND, [], manifest, drone, id, tlog)
+
+
+def register(app: typer.Typer, plan_app: typer.Typer) -> None:
+    plan_app.command("upload")(upload)
+    plan_app.command("download")(download)
+    plan_app.command("clear")(clear)
+    app.add_typer(leader_app, name="leader")
+    for fn in (arm, takeoff, land, disarm):
+        app.command(fn.__name__)(fn)

@@ -1,0 +1,188 @@
+"""The ground station's plans and leader commands over MAVLink, against the real stack: two drones
+flying (sitl up, two companions, Zenoh on loopback), the ground station on UDP, MAVProxy as a
+third-party client, and a relay of the test's own that cuts an upload in the middle."""
+
+from __future__ import annotations
+
+import copy
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+
+from triswarm.gcs import missions
+from triswarm.gcs.link import GroundLink
+from triswarm.gcs.recorder import Recorder
+from triswarm.gcs.stack import Stack
+from triswarm.protocol.mavlink import COMP_ONBOARD, CustomMode, mavlink
+from triswarm.protocol.plan_transfer import PlanItem, decode_plan, encode_plan, field_value
+
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def two_drone_spec(spec: dict) -> dict:
+    spec = copy.deepcopy(spec)
+    spec["name"] = "pair"
+    spec["drones"] = 2
+    spec["topology"] = {"switch_period_s": 5.0, "families": ["two-chain"]}
+    return spec
+
+
+class CuttableRelay:
+    """UDP between the ground station and a companion; ``cut`` drops everything from then on."""
+
+    def __init__(self, target_port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.up.connect(("127.0.0.1", target_port))
+        self.up.settimeout(0.05)
+        self.cut = threading.Event()
+        self.forwarded = 0
+        self._client = None
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._down, daemon=True), threading.Thread(target=self._back, daemon=True)]
+
+    def __enter__(self) -> "CuttableRelay":
+        for t in self._threads:
+            t.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2)
+        self.sock.close()
+        self.up.close()
+
+    def _down(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, self._client = self.sock.recvfrom(65536)
+            except socket.timeout:
+                continue
+            if not self.cut.is_set():
+                self.forwarded += 1
+                self.up.send(data)
+
+    def _back(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.up.recv(65536)
+            except (socket.timeout, ConnectionRefusedError):
+                continue
+            if self._client is not None and not self.cut.is_set():
+                self.sock.sendto(data, self._client)
+
+
+def flying(link: GroundLink, drone: int) -> bool:
+    hb, comp = link.autopilot(drone).heartbeat, link.companion(drone).heartbeat
+    return hb is not None and hb.custom_mode == CustomMode.EXTERNAL and comp is not None and comp.custom_mode == 2
+
+
+def wait_for(cond, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
+        time.sleep(0.1)
+
+
+def held_plan_id(link: GroundLink, drone: int) -> int:
+    return decode_plan(missions.download(link, drone))[1]
+
+
+def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
+    import tomllib
+
+    spec = two_drone_spec(paper_spec)
+    plan_file = tmp_path / "pair.toml"
+    plan_file.write_text(tomli_w.dumps(spec))
+    flying_id = decode_plan(encode_plan(tomllib.loads(plan_file.read_text())))[1]
+    with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=10.0) as stack, Recorder(stack.manifest) as rec:
+        with CuttableRelay(stack.gcs_ports[1]) as relay, \
+                GroundLink({1: stack.endpoints()[1], 2: f"udpout:127.0.0.1:{relay.port}"}, tlog=tmp_path / "gcs.tlog") as link:
+            wait_for(lambda: flying(link, 1) and flying(link, 2), 90, "both drones in formation")
+            time.sleep(12.0)  # the entry is over at 15 s of plan time
+
+            # an infeasible plan sent by a raw client: refused with the code and the reason
+            bad = copy.deepcopy(spec)  # a velocity offset with a constant position: fails (76)
+            bad["formation"] = {"type": "constant", "offsets": [[1.0] + [0.0] * 8 + [0.0, 0.0, 10.0],
+                                                                [0.0] * 9 + [1.0, 0.0, 10.0]]}
+            out = missions.upload(link, 1, encode_plan(bad))
+            assert not out.ok and out.code == mavlink.MAV_MISSION_INVALID, out
+            assert "plan refused" in out.detail
+
+            # an upload cut in the middle: the companion gives up, the plan in force flies on
+            new = copy.deepcopy(spec)
+            new["formation"]["radius_m"] = 8.0
+            items = encode_plan(new)
+            sent = []
+
+            def cut_after_five(k: int) -> None:
+                sent.append(k)
+                if k == 5:
+                    relay.cut.set()
+
+            out = missions.upload(link, 2, items, progress=cut_after_five, timeout_s=0.3, retries=3)
+            assert not out.ok and 5 <= max(sent) < len(items)  # (a request may be in flight at the cut)
+            relay.cut.clear()  # the ground station has given up; the companion asks on, then gives up too
+            wait_for(lambda: any(f"upload timed out at item {k}/{len(items)}" in text for _, _, text in link.companion(2).texts
+                                 for k in range(4, max(sent) + 1)), 10,
+                     "the companion's timeout (1 s, 5 retries)")
+            assert held_plan_id(link, 2) == flying_id
+            assert flying(link, 2)
+            out = missions.upload(link, 2, items)  # the retry
+            assert out.ok, out
+            assert held_plan_id(link, 2) == flying_id  # staged, not in force: it waits for its start
+
+            # starting a plan in flight is refused with the reason
+            pid = decode_plan(items)[1]
+            result, why = link.command(2, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF],
+                                       use_int=True, x=int(time.time() + 5), y=0)
+            assert result == mavlink.MAV_RESULT_DENIED and "land first" in why
+
+            # the leader moves 6 m north at 2 m/s on both drones at once: the pair's midpoint
+            # (the centre of a two-drone polygon) follows it
+            t_plan = link.param(1, COMP_ONBOARD, "PLAN_T_S")
+            at = t_plan + 1.0
+            for i in (1, 2):
+                result, why = link.command(i, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
+                                           [2.0, float("nan"), at, 0.0, 11.0, -5.0, 0.0])
+                assert result == mavlink.MAV_RESULT_ACCEPTED, why
+            move_s = 1.875 * 6.0 / 2.0
+            time.sleep(max(0.0, at + move_s + 4.0 - link.param(1, COMP_ONBOARD, "PLAN_T_S")))
+            now = time.time()
+            mids = []
+            for k in range(10):  # ten instants of the last second, from the flight controllers' own telemetry
+                t = now - 1.0 + 0.1 * k
+                p = [np.interp(t, rec.tracks[i].t_unix, np.asarray(rec.tracks[i].position_m)[:, a]) for i in (1, 2) for a in range(3)]
+                mids.append((np.array(p[:3]) + np.array(p[3:])) / 2)
+            np.testing.assert_allclose(np.mean(mids, axis=0), [11.0, -5.0, 20.0], atol=0.1)
+            assert flying(link, 1) and flying(link, 2)
+
+        # MAVProxy, a third-party client, downloads the plan drone 1 holds from component 191
+        mavproxy = Path(sys.executable).with_name("mavproxy.py")
+        saved = tmp_path / "plan.txt"
+        home = tmp_path / "home"
+        home.mkdir()
+        cmd = [sys.executable, str(mavproxy), f"--master={stack.endpoints()[1]}", "--target-system=1",
+               "--target-component=191", "--source-system=254", "--non-interactive", f"--state-basedir={tmp_path / 'mp'}",
+               f"--cmd=set requireexit True; wp list; repeat add 4 wp save {saved}; repeat add 6 exit"]
+        result = subprocess.run(cmd, cwd=tmp_path, env=dict(os.environ, HOME=str(home)), capture_output=True, text=True,
+                                timeout=60)
+        assert saved.exists(), result.stdout[-3000:] + result.stderr[-2000:]
+        rows = [line.split("\t") for line in saved.read_text().splitlines()[1:] if line.strip()]
+        items = [PlanItem(int(r[3]), tuple(field_value(round(float(v), 6), "wpl") for v in r[4:11])) for r in rows]
+        spec_back, pid_back = decode_plan(items)
+        assert pid_back == flying_id and spec_back["name"] == "pair"

@@ -1,0 +1,147 @@
+"""`triswarm plan check`, run as a real process: the design it prints against independent truth, bad
+plans refused with one sentence naming file, drone and field, and the shipped examples checked and
+flown."""
+
+import json
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from triswarm.gcs.scenarios import load_plan
+from triswarm.protocol import metrics
+from triswarm.sitl.simulation import SimConfig, simulate
+
+from .conftest import PAPER_PLAN_FILE, ROOT
+
+EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
+
+
+def plan_check(*args):
+    return subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "plan", "check", *map(str, args)],
+                          capture_output=True, text=True, timeout=60)
+
+
+def by_hand(edges, pinned, n=6):
+    """L + G from (from, to) edges, agents numbered from 1: row i holds what agent i hears."""
+    M = np.zeros((n, n))
+    for j, i in edges:
+        M[i - 1, j - 1] -= 1.0
+        M[i - 1, i - 1] += 1.0
+    for i in pinned:
+        M[i - 1, i - 1] += 1.0
+    return M
+
+
+# The edges listed in examples/paper-hexagon.toml.
+TWO_CHAIN = by_hand([(1, 2), (1, 3), (2, 3), (2, 4), (3, 4), (3, 5), (4, 5), (4, 6), (5, 6)], [1, 2])
+TRIANGLES = by_hand([(1, 2), (2, 3), (3, 1), (4, 5), (5, 6), (6, 4), (1, 4), (2, 5), (3, 6)], [1, 2])
+REVERSE_TWO_CHAIN = by_hand([(6, 5), (6, 4), (5, 4), (5, 3), (4, 3), (4, 2), (3, 2), (3, 1), (2, 1)], [6, 5])
+
+
+def sorted_eigenvalues(M):
+    lam = np.linalg.eigvals(M)
+    return lam[np.lexsort((lam.imag, lam.real))]
+
+
+def test_paper_plan_prints_c_and_the_eigenvalues():
+    r = plan_check(PAPER_PLAN_FILE)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == ""
+    c = float(re.search(r"│ c\s+([0-9.e+-]+) = 1 / \(2 lambda_R\)", r.stdout).group(1))
+    assert c == pytest.approx(load_plan(str(PAPER_PLAN_FILE)).design.c, rel=1e-5)
+    lambda_R = min(sorted_eigenvalues(M)[0].real for M in (TWO_CHAIN, TRIANGLES, REVERSE_TWO_CHAIN))
+    assert c == pytest.approx(1.0 / (2.0 * lambda_R), rel=1e-5)
+    row = re.search(r"│ two-chain\s+│\s+([0-9.]+) │ ([0-9., ]+?)\s+│", r.stdout)
+    assert float(row.group(1)) == pytest.approx(1.0)
+    printed = [float(x) for x in row.group(2).split(", ")]
+    assert printed == pytest.approx(sorted_eigenvalues(TWO_CHAIN).real) == [1, 2, 2, 2, 2, 2]
+    assert r.stdout.count("feasible over [0, 60] s") == 6
+
+
+def test_json_summary_has_the_eigenvalues_of_every_topology():
+    r = plan_check(PAPER_PLAN_FILE, "--json", "--horizon-s", "30")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["drones"] == 6 and summary["formation"] == "rotating-polygon"
+    assert summary["switch_period_s"] == 5.0 and summary["feasible_over_s"] == [0.0, 30.0]
+    eigs = summary["design"]["eigenvalues_L_plus_G"]
+    for name, M in (("two-chain", TWO_CHAIN), ("triangles", TRIANGLES), ("reverse-two-chain", REVERSE_TWO_CHAIN)):
+        got = np.array([e["re"] + 1j * e["im"] for e in eigs[name]])
+        assert np.sort_complex(got) == pytest.approx(np.sort_complex(sorted_eigenvalues(M)), abs=1e-9)
+    assert all(v < 0 for v in summary["design"]["stability_margins"].values())
+
+
+def bad_plan(tmp_path, replace):
+    text = PAPER_PLAN_FILE.read_text()
+    for old, new in replace:
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "plan.toml"
+    path.write_text(text)
+    return path
+
+
+POLYGON = 'radius_m = 10.0\naltitude_m = 20.0\nrate_rad_s = 1.0\nattitude_rad = "paper-alternating"\n'
+FAMILIES = 'families = ["two-chain", "triangles", "reverse-two-chain"]'
+OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
+
+
+@pytest.mark.parametrize("replace,field,drone", [
+    ([("radius_m = 10.0\n", "")], "formation.radius_m is required", None),
+    ([('"paper-alternating"', "[[0, 0, 0], [0, 0, 0], [0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]]")],
+     "formation.attitude_rad: drone 3 must have 3 numbers", "drone 3"),
+    ([("Q_diag = [1.0, ", "Q_diag = [")], "design.Q_diag must have shape (12,)", None),
+    ([('type = "rotating-polygon"', 'type = "spiral"')], "formation.type must be", None),
+    ([("switch_period_s = 5.0", "switch_period_s = -5.0")], "topology.switch_period_s must be positive", None),
+    ([(FAMILIES, '[[topology.graphs]]\nname = "broken"\npinned = [1]\nedges = [[1, 2], [2, 3], [4, 5], [5, 6]]')],
+     "[topology] topology broken violates Assumption 1", "agents 4, 5, 6"),
+    ([('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")],
+     "formation fails the feasibility condition (76)", "drone 3 position rows 10-12"),
+    ([('type = "rotating-polygon"\n', 'type = "keyframes"\nkeyframes = [{t_s = 5.0, position_m = [0, 0, 10]}, '
+                                      '{t_s = 5.0, position_m = [0, 0, 12]}]\n'), (POLYGON, "")],
+     "formation.keyframes[1].t_s must be later than the keyframe before it", None),
+], ids=["missing-field", "ragged-array", "short-array", "unknown-type", "negative-period", "no-spanning-tree",
+        "infeasible-76", "keyframes-out-of-order"])
+def test_bad_plan_ends_with_one_sentence_naming_file_drone_and_field(tmp_path, replace, field, drone):
+    path = bad_plan(tmp_path, replace)
+    r = plan_check(path)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr and r.stdout == ""
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"triswarm: error: {path}: ")
+    assert field in lines[0]
+    if drone is not None:
+        assert drone in lines[0]
+
+
+def test_bad_horizon():
+    r = plan_check(PAPER_PLAN_FILE, "--horizon-s", "nan")
+    assert r.returncode == 2 and r.stderr == "triswarm: error: --horizon-s must be a positive number, got nan\n"
+
+
+def test_examples_are_shipped():
+    assert {p.name for p in EXAMPLES} >= {"paper-hexagon.toml", "reshaping.toml", "large-swarm.toml"}
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+def test_examples_pass_the_check(path):
+    r = plan_check(path)
+    assert r.returncode == 0, r.stderr
+    n = load_plan(str(path)).n_agents
+    assert r.stdout.count("feasible over [0, 60] s") == n and f"{path}: plan OK" in r.stdout
+
+
+def test_reshaping_example_flies_within_the_papers_bounds():
+    plan = load_plan(str(ROOT / "examples" / "reshaping.toml"))
+    result = simulate(plan, SimConfig(duration_s=50.0))
+    pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
+    perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=25.0)
+    assert result.diverged_at_s is None
+    assert perf.worst_position_m <= 0.10 and perf.worst_attitude_rad <= 0.02, perf
+    # the window holds the whole reshaping: the line at 30 s, the triangle from 40 s
+    ref_30, _ = plan.reference(30.0)
+    assert np.allclose(ref_30[:, 9], 0.0) and np.allclose(ref_30[:, 11], 24.0)
