@@ -38,6 +38,9 @@ def companion(
     state_dir: Annotated[Optional[Path], typer.Option(help="Keep the plan and mission here, to resume after a restart.")] = None,
     swarm: Annotated[Optional[str], typer.Option(help="Swarm name in the Zenoh key space (default: the plan's name).")] = None,
     stats: Annotated[Optional[Path], typer.Option(help="Write loop statistics here at exit (JSON).")] = None,
+    signing_key: Annotated[Optional[Path], typer.Option(help="MAVLink 2 signing key file (32 bytes, or 64 hex digits): "
+                                                             "sign the ground-station link and refuse its unsigned "
+                                                             "commands, plans and parameter changes.")] = None,
     verbose: Annotated[bool, typer.Option(help="Log more.")] = False,
 ) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
@@ -58,7 +61,7 @@ def companion(
                                 start_at_unix_s=start_at, zenoh_config=zenoh_config,
                                 zenoh_listen=tuple(zenoh_listen or ()), zenoh_connect=tuple(zenoh_connect or ()),
                                 zenoh_mode=zenoh_mode, zenoh_base_port=zenoh_base_port, rate_hz=rate_hz,
-                                state_dir=state_dir, swarm=swarm, stats_path=stats)
+                                state_dir=state_dir, swarm=swarm, stats_path=stats, signing_key_path=signing_key)
         comp = Companion(opts)
 
         async def main() -> dict:

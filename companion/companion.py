@@ -14,6 +14,15 @@ reader callback:
     5. protocol (72) with the neighbours it has, RFL (49), SET_ACTUATOR_CONTROL_TARGET.
 
 Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time.
+
+With a signing key (``--signing-key``), the ground-station link signs every frame the companion
+sends and checks every frame it receives (MAVLink 2 signing, ``protocol.mavlink.setup_signing``).
+Of the unsigned ones only HEARTBEAT, PARAM_REQUEST_READ and PARAM_REQUEST_LIST pass: they change
+nothing, and let a ground station without the key (a monitor) be heard and read parameters. Every
+other unsigned frame, and every frame with a wrong signature or a replayed timestamp, is dropped
+before routing (so it reaches neither this component nor the flight controller), counted in the
+link's counters by reason, and reported to the ground station once a second. Frames forwarded
+from the flight controller, whose link is not signed, reach the ground station as they came.
 """
 
 from __future__ import annotations
@@ -21,7 +30,7 @@ from __future__ import annotations
 import asyncio
 import enum
 import gc
-from collections import deque
+from collections import Counter, deque
 import json
 import logging
 import math
@@ -39,8 +48,8 @@ from triswarm.protocol.airframe import TABLE_1, ParameterError
 from triswarm.protocol.formation import Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
 from triswarm.protocol.graph import Topology
 from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators,
-                                       local_ned_to_paper, mavlink, rates_to_paper)
-from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, read_plan_file
+                                       local_ned_to_paper, mavlink, rates_to_paper, read_signing_key, setup_signing)
+from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, spec_from_toml
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
 
 from .bus import Bus, default_config, tune
@@ -58,6 +67,10 @@ LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
              mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
+UNSIGNED_FROM_GCS = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
+                               mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST})
+"""With a signing key: what the ground-station link takes unsigned (see the module's text)."""
+GCS_LINK_ID = 1  # the ground-station link's id in the signatures it sends
 
 
 class Phase(enum.Enum):
@@ -87,6 +100,7 @@ class CompanionOptions:
     state_dir: Path | None = None
     swarm: str | None = None
     stats_path: Path | None = None
+    signing_key_path: Path | None = None
 
 
 @dataclass
@@ -98,7 +112,13 @@ class ParamSpec:
 
 
 def load_plan_file(path: Path) -> Plan:
-    return plan_from_dict(read_plan_file(path), str(path))
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise PlanError(f"{path}: no such plan file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
+    return plan_from_dict(spec_from_toml(text, str(path)), str(path))
 
 
 def leader_with_moves(leader: Formation, moves: list[dict]) -> Formation:
@@ -147,6 +167,8 @@ class Companion:
     def __init__(self, opts: CompanionOptions) -> None:
         self.opts = opts
         self.agent = opts.agent
+        self.signing_key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
+        self._refusals_told: Counter[str] = Counter()
         self.store = StateStore(opts.state_dir)
         self.fc = FcState()
         self.health = LoopHealth(1.0 / opts.rate_hz)
@@ -308,6 +330,9 @@ class Companion:
         self.load_mission()
         self.fc_link = MavLink("fc", self.opts.fc_url, self.agent, COMP_ONBOARD)
         self.gcs_link = MavLink("gcs", self.opts.gcs_url, self.agent, COMP_ONBOARD)
+        if self.signing_key is not None:
+            setup_signing(self.gcs_link.codec, self.signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__,
+                          self.gcs_link.counters)
         self.links = [self.fc_link, self.gcs_link]
         self.router = Router(self.agent, COMP_ONBOARD)
         self.plans = PlanServer(self._receive_plan, self._clear_plans, self._held_items, self._say)
@@ -521,8 +546,8 @@ class Companion:
         try:
             while self.fc.clock_offset_s is None:  # setup_fc is still running
                 await asyncio.sleep(0.05)
-            self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
-            if self.opts.autostart:
+            if self.opts.autostart:  # (a start command has its answer already)
+                self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
                 if time.time() > m.start_unix_s - ARM_LEAD_S:
                     self.statustext(f"companion {self.agent}: ready {time.time() - m.start_unix_s + ARM_LEAD_S:.1f} s "
                                     f"late for the start", mavlink.MAV_SEVERITY_WARNING)
@@ -930,6 +955,7 @@ class Companion:
             hb = self._heartbeat()
             for link in self.links:
                 link.send(hb)
+            self._tell_refusals()
             if hasattr(self, "bus"):
                 report = self.health_report()
                 self.bus.publish_health(report)
@@ -947,6 +973,16 @@ class Companion:
                     if age is not None:
                         self.gcs_link.send(mavlink.MAVLink_named_value_float_message(boot_ms, f"NB{j}_AGEMS".encode(), age))
             await asyncio.sleep(1.0)
+
+    def _tell_refusals(self) -> None:
+        """The frames from the ground station refused since the last time, by reason (a ground
+        station without the key, or with another, learns why it gets no answer)."""
+        refused = Counter({k: n for k, n in self.gcs_link.counters.items() if k.startswith("refused_")})
+        new = refused - self._refusals_told
+        if new:
+            self._refusals_told = refused
+            counts = ", ".join(f"{n} {k.removeprefix('refused_').replace('_', ' ')}" for k, n in sorted(new.items()))
+            self._say(f"refused frames from the ground station: {counts}", mavlink.MAV_SEVERITY_WARNING)
 
     def health_report(self) -> dict:
         now = time.time()

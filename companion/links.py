@@ -2,7 +2,9 @@
 
 pymavlink provides the transports (``udpin:``, ``udpout:``, ``tcp:``, serial ports); frames are
 parsed and packed by the project's own codec (``protocol.mavlink``, MAVLink 2), so nothing depends on
-pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``).
+pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``). A link
+whose codec has signing set up (``protocol.mavlink.setup_signing``) counts the frames it refuses in
+its counters (``refused_*``), not as bad data.
 
 On UDP links every datagram carries the kernel's receive time (SO_TIMESTAMPNS), so the time a
 sample "arrived" includes the wait before the process got to read it; other transports fall back
@@ -20,7 +22,7 @@ from collections.abc import Callable
 
 from pymavlink import mavutil
 
-from triswarm.protocol.mavlink import new_codec, reset_parser
+from triswarm.protocol.mavlink import SIGNATURE_REFUSED, new_codec, reset_parser
 
 MAX_READS_PER_WAKEUP = 64
 MAX_DATAGRAM = 65535
@@ -35,7 +37,6 @@ class MavLink:
     def __init__(self, name: str, url: str, sysid: int, compid: int) -> None:
         self.name, self.url = name, url
         self.codec = new_codec(sysid, compid)
-        self.parser = new_codec(sysid, compid)
         self.conn = None
         self.counters: Counter[str] = Counter()
         self._on_receive: Callable | None = None
@@ -86,17 +87,18 @@ class MavLink:
             if isinstance(data, str):
                 data = data.encode("latin-1")
             if self._datagrams:
-                reset_parser(self.parser)  # whole frames per datagram; leftovers are garbage
+                reset_parser(self.codec)  # whole frames per datagram; leftovers are garbage
             try:
-                msgs = self.parser.parse_buffer(data) or []
+                msgs = self.codec.parse_buffer(data) or []
             except Exception:  # garbage loses itself, never the link
                 self.counters["drop_unparseable"] += 1
-                reset_parser(self.parser)
+                reset_parser(self.codec)
                 continue
             good = []
             for m in msgs:
                 if m.get_type() == "BAD_DATA":
-                    self.counters["drop_bad_data"] += 1
+                    if m.reason != SIGNATURE_REFUSED:  # (the signing counted those)
+                        self.counters["drop_bad_data"] += 1
                 else:
                     good.append(m)
             self.counters["rx"] += len(good)

@@ -242,9 +242,11 @@ def sitl_up(
 from .plot_cmd import plot  # noqa: E402
 from .swarm_cmd import register  # noqa: E402
 from .demo import demo  # noqa: E402
+from .monitor import monitor  # noqa: E402
 
 app.command("plot")(plot)
 app.command("demo")(demo)
+app.command("monitor")(monitor)
 register(app, plan_app)
 
 

@@ -6,11 +6,18 @@ Endpoints come from a swarm manifest (``swarm.json``, written by ``triswarm stac
     {"swarm": "paper-hexagon", "drones": [{"id": 1, "mavlink": "udpout:127.0.0.1:14601"}, ...]}
 
 or from ``--drone ID=URL`` (pymavlink connection strings).
+
+With a signing key, every frame sent is signed (MAVLink 2 signing; the link id is this process's
+id modulo 256, so ground stations running at once are, but for a chance of 1/256, separate streams
+of signed frames) and signed frames received are checked: one with a wrong signature or a replayed timestamp is dropped and counted
+(``counters["refused_*"]``). Unsigned frames are taken: the flight controllers' own, which their
+companions forward as they came, are not signed.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import queue
 import select
 import struct
@@ -20,7 +27,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink, new_codec
+from triswarm.protocol.mavlink import COMP_ONBOARD, SIGNATURE_REFUSED, mavlink, new_codec, setup_signing
 
 GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190, as ground stations do
@@ -93,9 +100,11 @@ class Subscription:
 
 
 class GroundLink:
-    """Use as a context manager. ``tlog``: every message received, with its arrival time."""
+    """Use as a context manager. ``tlog``: every message received, with its arrival time.
+    ``signing_key``: sign what is sent, check what is received signed (see the module's text)."""
 
-    def __init__(self, endpoints: dict[int, str], tlog: Path | None = None, heartbeat_hz: float = 1.0) -> None:
+    def __init__(self, endpoints: dict[int, str], tlog: Path | None = None, heartbeat_hz: float = 1.0,
+                 signing_key: bytes | None = None) -> None:
         from pymavlink import mavutil
 
         self.endpoints = dict(endpoints)
@@ -114,6 +123,8 @@ class GroundLink:
                 self.conns[i] = mavutil.mavlink_connection(url, source_system=GCS_SYSID, source_component=GCS_COMPID,
                                                            autoreconnect=True)
                 self.codecs[i] = new_codec(GCS_SYSID, GCS_COMPID)
+                if signing_key is not None:
+                    setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters)
         except Exception as exc:  # pymavlink raises what the socket or serial layer raises
             self.close()
             raise LinkError(f"cannot open the link to drone {i} at {url}: {exc}") from None
@@ -221,14 +232,16 @@ class GroundLink:
 
     def _take(self, drone: int, data: bytes) -> None:
         try:
-            msgs = self.codecs[drone].parse_buffer(data) or []
+            with self._send_lock:  # a signed frame parsed may move the signing timestamp the senders use
+                msgs = self.codecs[drone].parse_buffer(data) or []
         except Exception:  # pymavlink raises MAVError and struct errors on garbage
             self.counters["bad_frames"] += 1
             return
         now = time.time()
         for msg in msgs:
             if msg.get_type() == "BAD_DATA":
-                self.counters["bad_frames"] += 1
+                if msg.reason != SIGNATURE_REFUSED:  # (the signing counted those)
+                    self.counters["bad_frames"] += 1
                 continue
             self.counters["messages"] += 1
             if self.tlog is not None:

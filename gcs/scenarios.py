@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import tomllib
 from importlib import resources
 from pathlib import Path
 
-from triswarm.protocol.plan import Plan, PlanError, plan_from_dict
+from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, spec_from_toml
 
 
 def builtin_names() -> list[str]:
@@ -32,11 +31,7 @@ def plan_text(name_or_path: str) -> str:
 
 def read_plan_spec(name_or_path: str) -> tuple[dict, str]:
     """The plan dict and a label for messages. Raises PlanError for a missing or malformed file."""
-    text = plan_text(name_or_path)
-    try:
-        return tomllib.loads(text), name_or_path
-    except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"{name_or_path}: not valid TOML ({exc})") from None
+    return spec_from_toml(plan_text(name_or_path), name_or_path), name_or_path
 
 
 def load_plan(name_or_path: str, drones: int | None = None) -> Plan:

@@ -457,3 +457,19 @@ class LeaderMove(Formation):
 
     def kinematics(self, t_s: float) -> Kinematics:
         return self.base.kinematics(t_s) if t_s < self.at_s else self._move.kinematics(t_s)
+
+
+@dataclass(frozen=True)
+class Shifted(Formation):
+    """``base`` with its clock starting ``shift_s`` later: a plan put in force in flight flies its
+    formation from its own t = 0 while the swarm's plan time runs on."""
+
+    base: Formation
+    shift_s: float
+
+    @property
+    def n_agents(self) -> int:
+        return self.base.n_agents
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        return self.base.kinematics(t_s - self.shift_s)

@@ -20,12 +20,22 @@ Actuator mapping of SET_ACTUATOR_CONTROL_TARGET (group_mlx 0), normalised as MAV
 
 Values outside those ranges are clamped and counted; a message with a non-finite value in
 controls[0..5] is dropped and counted.
+
+MAVLink 2 signing (https://mavlink.io/en/guide/message_signing.html) of a link: ``read_signing_key``
+and ``setup_signing``, on pymavlink's own signing state (``MAVLink.signing``).
 """
 
 from __future__ import annotations
 
 import enum
+import hashlib
+import hmac
+import struct
+import time
+from collections import Counter
+from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from . import frames
@@ -58,6 +68,114 @@ def reset_parser(mav: "mavlink.MAVLink") -> None:
     mav.buf_index = 0
     mav.expected_length = mavlink.HEADER_LEN_V1 + 2
     mav.have_prefix_error = False
+
+
+SIGNING_KEY_BYTES = 32
+SIGNING_EPOCH_UNIX_S = 1420070400  # 1 January 2015 GMT
+NEW_STREAM_LAG = 6_000_000  # a new stream may start at most a minute behind our own timestamp [10 us]
+SIGNATURE_REFUSED = "Invalid signature"  # pymavlink's reason (BAD_DATA) for a frame its signing refused
+
+
+def read_signing_key(path: Path) -> bytes:
+    """A signing key file: the 32 bytes of secret, either as they are (a 32-byte binary file) or
+    as 64 hexadecimal digits (a text file; surrounding white space is ignored). ValueError (one
+    sentence) for anything else, and for the all-zero key, which means "no signing" in MAVLink."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the signing key ({exc.strerror})") from None
+    key = data if len(data) == SIGNING_KEY_BYTES else _hex_key(data.strip())
+    if key is None:
+        raise ValueError(f"{path}: not a signing key: expected {SIGNING_KEY_BYTES} bytes, or "
+                         f"{2 * SIGNING_KEY_BYTES} hexadecimal digits (the file has {len(data)} bytes)")
+    if not any(key):
+        raise ValueError(f"{path}: the all-zero signing key means no signing; make a random one")
+    return key
+
+
+def _hex_key(text: bytes) -> bytes | None:
+    if len(text) != 2 * SIGNING_KEY_BYTES:
+        return None
+    try:
+        return bytes.fromhex(text.decode("ascii"))
+    except (UnicodeDecodeError, ValueError):
+        return None
+
+
+def signing_timestamp(unix_s: float) -> int:
+    """A signing timestamp: 10 us units since 1 January 2015 GMT."""
+    return max(0, int((unix_s - SIGNING_EPOCH_UNIX_S) * 1e5))
+
+
+class Signing(mavlink.MAVLinkSigning):
+    """pymavlink's signing state, with two changes to how it treats timestamps:
+
+    * ours never fall behind the Unix clock (pymavlink starts from the clock, then only adds one
+      per frame, so a quiet link's lag behind the clock grows until its peers refuse it as an old
+      stream after a restart);
+    * a stream's last timestamp moves only once a frame's signature is good (pymavlink moves it
+      first, so one forged frame with a timestamp far ahead would shut the real sender out).
+
+    Frames refused are counted in ``counters`` by reason: ``refused_unsigned``, ``refused_bad_signature``
+    (signed with another key, or altered), ``refused_replay`` (a good signature, but a timestamp not
+    newer than the last of its stream (link id, system, component), or for a new stream, more than a
+    minute behind our own).
+    """
+
+    def __init__(self, allow_unsigned: Callable[[int], bool] | None, counters: MutableMapping[str, int]) -> None:
+        super().__init__()
+        self.allow_unsigned = allow_unsigned
+        self.counters = counters
+        self._failed: str | None = None  # why the frame being decoded failed its check
+
+    @property
+    def timestamp(self) -> int:
+        return max(self._timestamp, signing_timestamp(time.time()))
+
+    @timestamp.setter
+    def timestamp(self, value: int) -> None:
+        self._timestamp = value
+
+    def check(self, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        """MAVLink.check_signature: the signature, then the timestamp."""
+        expected = hashlib.sha256(self.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        if not hmac.compare_digest(expected, bytes(msgbuf[-6:])):
+            self._failed = "bad_signature"
+            return False
+        low, high = struct.unpack_from("<IH", msgbuf, len(msgbuf) - 12)
+        stamp = low | high << 32
+        stream = (msgbuf[-13], src_system, src_component)
+        last = self.stream_timestamps.get(stream)
+        stale = stamp + NEW_STREAM_LAG < self.timestamp if last is None else stamp <= last
+        if stale:
+            self._failed = "replay"
+            return False
+        self.stream_timestamps[stream] = stamp
+        self.timestamp = max(self.timestamp, stamp)  # as the specification asks
+        return True
+
+    def accept(self, mav, msg_id: int) -> bool:
+        """MAVLink.signing.allow_unsigned_callback: called for every frame that did not pass
+        ``check`` (or carried no signature). Only unsigned frames may pass, if ``allow_unsigned``
+        says so; a wrong signature or a replay never does."""
+        reason, self._failed = self._failed or "unsigned", None
+        if reason == "unsigned" and self.allow_unsigned is not None and self.allow_unsigned(msg_id):
+            return True
+        self.counters[f"refused_{reason}"] += 1
+        return False
+
+
+def setup_signing(codec: "mavlink.MAVLink", key: bytes, link_id: int, allow_unsigned: Callable[[int], bool] | None = None,
+                  counters: MutableMapping[str, int] | None = None) -> None:
+    """Sign every frame ``codec`` packs (as link ``link_id``) and check every frame it parses:
+    frames refused become BAD_DATA with reason SIGNATURE_REFUSED, counted by reason (see Signing)
+    in ``counters`` (a new Counter by default). ``allow_unsigned(msg_id)``: which unsigned frames
+    may pass (default: none)."""
+    signing = Signing(allow_unsigned, Counter() if counters is None else counters)
+    signing.secret_key, signing.link_id, signing.sign_outgoing = key, link_id, True
+    signing.allow_unsigned_callback = signing.accept
+    codec.signing = signing
+    codec.check_signature = signing.check
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """A formation plan: who flies, where, over which graphs, with which design weights.
 
-Built from a plain dict (what ``tomllib`` gives for a plan file, see ``read_plan_file``). Every mistake a user can make raises ``PlanError`` with one sentence naming the source,
+Built from a plain dict (what ``tomllib`` gives for a plan file, see ``spec_from_toml``). Every
+mistake a user can make raises ``PlanError`` with one sentence naming the source,
 the field and, where it applies, the drone (numbered from 1).
 
 Schema (all sections but ``formation`` optional; units in the field names):
@@ -366,15 +367,23 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, source, dict(data))
 
 
-def read_plan_file(path) -> dict:
-    """The dict of a plan file (TOML); PlanError naming the file if it is missing or malformed."""
-    from pathlib import Path
-
+def spec_from_toml(text: str, source: str) -> dict:
+    """The dict of a plan file's text; PlanError naming the source if it is not TOML. (Reading the
+    file is the caller's: ``protocol/`` does no I/O.)"""
     try:
-        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PlanError(f"{path}: no such plan file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"{path}: not valid TOML ({exc})") from None
+        raise PlanError(f"{source}: not valid TOML ({exc})") from None
+
+
+IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry"})
+"""What a plan put in force during a flight may change: the formation (and its name)."""
+
+
+def in_flight_change_problem(flying: dict, new: dict) -> str | None:
+    """Why ``new`` cannot replace ``flying`` in the air, or None. The design, graphs, leader and
+    airframe must stay: the controllers, the neighbours and x0 carry on through the switch."""
+    for key in sorted((set(flying) | set(new)) - IN_FLIGHT_CHANGEABLE):
+        if flying.get(key) != new.get(key):
+            return f"in flight a new plan may change only its formation, not {key}; land first"
+    return None
