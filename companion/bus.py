@@ -101,6 +101,12 @@ class Bus:
     statuses: dict[int, AgentStatus] = field(default_factory=dict)
     on_estimate: Callable[[], None] | None = None
     """Called (in the loop) after new neighbour estimates were taken in."""
+    previous_plan_id: int | None = None
+    """After a plan change in flight, the plan before it: its estimates still count (neighbours
+    switch within a tick of each other, and their estimates stay continuous through it)."""
+
+    def switch_plan(self, plan_id: int) -> None:
+        self.previous_plan_id, self.plan_id = self.plan_id, plan_id
 
     def open(self, config: zenoh.Config, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
@@ -224,7 +230,7 @@ class Bus:
         if nb is None or key_agent != agent:
             self.counters["drop_unknown_agent"] += 1
             return None
-        if plan != self.plan_id:
+        if plan != self.plan_id and plan != self.previous_plan_id:
             self.counters["drop_other_plan"] += 1
             return None
         if not _newer(t_plan, seq, nb.t_plan_s, nb.seq):
@@ -252,7 +258,7 @@ class Bus:
         except (ValueError, KeyError, TypeError):
             self.counters["drop_bad_status"] += 1
             return
-        if msg.get("plan") == self.plan_id:
+        if msg.get("plan") in (self.plan_id, self.previous_plan_id):
             self.statuses[agent] = status
 
     def _alive(self, key: str, present: bool) -> None:

@@ -45,11 +45,12 @@ from triswarm.protocol.agent import Reference, no_leader, pinned_input, protocol
 from triswarm.protocol.codec import AgentStatus, plan_id
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.airframe import TABLE_1, ParameterError
-from triswarm.protocol.formation import Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, rejoin_duration
+from triswarm.protocol.formation import (Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, Shifted,
+                                         rejoin_duration)
 from triswarm.protocol.graph import Topology
 from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators,
                                        local_ned_to_paper, mavlink, rates_to_paper, read_signing_key, setup_signing)
-from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, spec_from_toml
+from triswarm.protocol.plan import Plan, PlanError, in_flight_change_problem, plan_from_dict, spec_from_toml
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
 
 from .bus import Bus, default_config, tune
@@ -63,6 +64,7 @@ log = logging.getLogger("triswarm.companion")
 ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
+SWITCH_MAX_JUMP = (5.0, 5.0)  # in flight, a new formation may start this far from the old one [m, m/s]
 LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
@@ -198,17 +200,22 @@ class Companion:
         self._t_p = -math.inf
         self._waiting: _Waiting | None = None
         self._flying: Formation | None = None  # the formation being flown (the entry first)
+        self.formation: Formation | None = None  # the plan's formation, from its own start
+        self._tracking: Formation | None = None  # what this drone's reference follows now (entry, rejoin, ...)
+        self._switch: tuple[Plan, int, float] | None = None  # a plan to put in force in flight, and when
         self._deadline: asyncio.TimerHandle | None = None
 
     # -- plan ---------------------------------------------------------------------------------
 
     def load_mission(self) -> None:
-        """A saved mission (resumed after a restart) wins over a plan file with the same plan."""
+        """A saved mission (resumed after a restart) wins over a plan file with the same plan, and
+        over any plan file in the middle of a flight (the plan may have changed in the air)."""
         saved = self.store.load()
         if self.store.problem:
             log.warning(self.store.problem)
         plan_file = load_plan_file(self.opts.plan_path) if self.opts.plan_path else None
-        if saved is not None and saved.agent == self.agent and (plan_file is None or plan_id(plan_file.spec) == saved.plan_id):
+        if saved is not None and saved.agent == self.agent and (plan_file is None or saved.phase == "flying"
+                                                                or plan_id(plan_file.spec) == saved.plan_id):
             self.mission = saved
             self.plan = plan_from_dict(saved.plan_spec, f"{self.store.path}")
         elif plan_file is not None:
@@ -220,7 +227,12 @@ class Companion:
             self._plan_in_force()
 
     def _plan_in_force(self) -> None:
-        self.leader = leader_with_moves(self.plan.leader, self.mission.leader_moves)
+        m = self.mission
+        self.leader = leader_with_moves(self.plan.leader, m.leader_moves)
+        self.formation = Shifted(self.plan.formation, m.formation_shift_s) if m.formation_shift_s else self.plan.formation
+        if m.next_plan is not None:
+            nxt = m.next_plan
+            self._switch = (plan_from_dict(nxt["spec"], f"{self.store.path}"), nxt["plan_id"], nxt["at_unix_s"])
         self.values["COUPLING_C"] = self.plan.design.c
         self.params["COUPLING_C"] = ParamSpec(self.plan.design.c, 0.0, 1e9, read_only=True)
 
@@ -269,8 +281,6 @@ class Companion:
         m = self.mission
         if m is not None and m.plan_id == pid and m.start_unix_s == start_unix_s and m.phase != "done":
             return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry of the same command
-        if self.phase in (Phase.FLYING, Phase.HOLDING):
-            return mavlink.MAV_RESULT_DENIED, "plan start refused: flying; land first"
         if not (math.isfinite(start_unix_s) and start_unix_s > time.time() - 1.0):
             return mavlink.MAV_RESULT_DENIED, "plan start refused: the start time has passed"
         if self.staged is not None and self.staged[1] == pid:
@@ -279,6 +289,8 @@ class Companion:
             plan = self.plan
         else:
             return mavlink.MAV_RESULT_DENIED, f"plan start refused: no plan {pid:08x} here; upload it first"
+        if self.phase in (Phase.FLYING, Phase.HOLDING):
+            return self._plan_next(plan, pid, start_unix_s)
         reopen = m is None or m.plan_id != pid or not hasattr(self, "bus")
         self.staged = None
         self.plan, self.mission = plan, Mission(plan.spec, pid, self.agent, start_unix_s, "scheduled")
@@ -290,6 +302,50 @@ class Companion:
             self._open_bus(self.loop)
         self._schedule()
         return mavlink.MAV_RESULT_ACCEPTED, f"plan {plan.name} starts at {start_unix_s:.1f}"
+
+    def _plan_next(self, plan: Plan, pid: int, at_unix_s: float) -> tuple[int, str]:
+        """In flight: the new plan takes over at at_unix_s if it changes only the formation."""
+        m = self.mission
+        if m.next_plan is not None and (m.next_plan["plan_id"], m.next_plan["at_unix_s"]) == (pid, at_unix_s):
+            return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry
+        problem = in_flight_change_problem(self.plan.spec, plan.spec) or self._switch_jump(plan, at_unix_s)
+        if problem:
+            return mavlink.MAV_RESULT_DENIED, f"plan start refused: {problem}"
+        self.staged = None
+        self._switch = (plan, pid, at_unix_s)
+        m.next_plan = {"spec": plan.spec, "plan_id": pid, "at_unix_s": at_unix_s}
+        self.store.save(m)
+        return mavlink.MAV_RESULT_ACCEPTED, f"plan {plan.name} takes over at {at_unix_s:.1f}"
+
+    def _switch_jump(self, plan: Plan, at_unix_s: float) -> str | None:
+        """Whether the new formation at its t = 0 is near the old one at that time, for every drone
+        (the same answer on every companion: both are the plans', not this drone's)."""
+        old, old_dot = self.formation.offsets(at_unix_s - self.mission.start_unix_s)
+        new, new_dot = plan.formation.offsets(0.0)
+        dp = float(np.max(np.linalg.norm(old[:, 9:12] - new[:, 9:12], axis=1)))
+        dv = float(np.max(np.linalg.norm(old_dot[:, 9:12] - new_dot[:, 9:12], axis=1)))
+        if dp > SWITCH_MAX_JUMP[0] or dv > SWITCH_MAX_JUMP[1]:
+            return (f"at that time the new formation starts {dp:.1f} m and {dv:.1f} m/s from the old one (at most "
+                    f"{SWITCH_MAX_JUMP[0]:g} m, {SWITCH_MAX_JUMP[1]:g} m/s): start it where the two meet")
+        return None
+
+    def _switch_plan(self, t_plan: float) -> None:
+        """Put the next plan in force, here in flight: its formation starts now (its t = 0), the
+        swarm's plan time, graphs and leader run on, and the reference leaves the old formation
+        for the new one as a rejoin does (the error decays)."""
+        plan, pid, at_unix_s = self._switch
+        self._switch = None
+        m = self.mission
+        m.plan_spec, m.plan_id, m.next_plan = plan.spec, pid, None
+        m.formation_shift_s = at_unix_s - m.start_unix_s
+        self.store.save(m)
+        self.plan = plan
+        self._plan_in_force()
+        self.bus.switch_plan(pid)
+        self._flying = self.formation
+        self.statustext(f"companion {self.agent}: plan {plan.name} {pid:08x} in force")
+        if self.phase == Phase.FLYING:
+            self._rejoin(t_plan, self._tracking)
 
     def _leader_command(self, msg) -> tuple[int, str]:
         """MAV_CMD_TRISWARM_LEADER_GOTO / _HOLD: a move of x0 from a plan time common to the swarm."""
@@ -527,7 +583,7 @@ class Companion:
             self.statustext(f"companion {self.agent}: resuming plan after restart")
             await self._resume()
             return
-        if self.opts.autostart:
+        if self.opts.autostart and m.phase != "done":
             m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
             m.phase = "scheduled"
             self.store.save(m)
@@ -601,8 +657,7 @@ class Companion:
         m.phase = "flying"
         self.store.save(m)
         start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self._flying = self.plan.entry_formation(start, t0_unix - m.start_unix_s)
-        self.offsets = self._flying.offsets
+        self._flying = self._tracking = self.plan.entry_formation(start, t0_unix - m.start_unix_s, self.formation)
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -618,9 +673,9 @@ class Companion:
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         t_plan = self._plan_time(self._last_sample)
-        self._flying = self.plan.formation
+        self._flying = self.formation
         self._hold = self._braking(t_plan + self.ctrl.lead_s, self.ctrl.rfl.phi_r(x[None, :])[0])
-        self._rejoin(t_plan)
+        self._rejoin(t_plan, RelativeTo(self._hold, self.leader))
 
     def _braking(self, t: float, x: np.ndarray) -> QuinticTransfer:
         """From x_r = [lambda_dot, eta_dot, eta, lambda] at plan time t to rest at its stopping
@@ -632,20 +687,20 @@ class Companion:
         return QuinticTransfer(tile(p0), tile(v0), tile(p0 + v0 * T / 2.0), tile(eta0), tile(eta_dot0),
                                tile([0.0, 0.0, eta0[2]]), t, T)
 
-    def _rejoin(self, t_plan: float) -> None:
-        """Back into the formation from the braking/held trajectory: the reference starts exactly
-        where (and as fast as) the drone is meant to be, and its distance to the formation decays
-        over REJOIN_S seconds, longer if the way back is long (peak acceleration REJOIN_ACCEL_M_S2)."""
-        source = RelativeTo(self._hold, self.leader)
+    def _rejoin(self, t_plan: float, source: Formation) -> None:
+        """Into the formation from ``source`` (the braking/held trajectory, or the formation of the
+        plan before): the reference starts exactly where (and as fast as) the drone is meant to be,
+        and its distance to the formation decays over REJOIN_S seconds, longer if the way is long
+        (peak acceleration REJOIN_ACCEL_M_S2)."""
         t0 = t_plan + self.ctrl.lead_s  # references are evaluated at the time the estimates refer to
-        target = self._flying or self.plan.formation  # the entry, if it is not over
+        target = self._flying or self.formation  # the entry, if it is not over
         rejoin = Rejoin(source, target, t0, self.values["REJOIN_S"])
         dp, dv = (float(np.linalg.norm(e[self.agent - 1])) for e in rejoin.initial_error)
         duration_s = rejoin_duration(dp, dv, self.values["REJOIN_ACCEL"], self.values["REJOIN_S"])
         if duration_s > rejoin.duration_s:
             rejoin = Rejoin(source, target, t0, duration_s)
         log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
-        self.offsets = rejoin.offsets
+        self._tracking = rejoin
         self._set_phase(Phase.FLYING, "")
 
     def _set_phase(self, phase: Phase, reason: str) -> None:
@@ -718,10 +773,12 @@ class Companion:
         lead, dt = self.ctrl.lead_s, self.ctrl.dt_s
         i = self.agent - 1
         self._t_p = t_plan + lead
+        if self._switch is not None and t_plan + self.mission.start_unix_s >= self._switch[2]:
+            self._switch_plan(t_plan)
         if self.phase == Phase.HOLDING:
             self._hold_step(s, xhat, t_plan)
             return
-        ref = reference_at(self._design, self.offsets, self._leader_state, t_plan, lead, dt, rows=[i])
+        ref = reference_at(self._design, self._tracking.offsets, self._leader_state, t_plan, lead, dt, rows=[i])
         xi = xhat - ref.h
         self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
         topo = self.plan.schedule.at(ref.t_p)
@@ -776,7 +833,7 @@ class Companion:
                            topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
         self._actuate(v, w.sample)
         if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
-            h, _ = self.plan.formation.offsets(w.ref.t_p)
+            h, _ = self.formation.offsets(w.ref.t_p)
             x0, _ = self._leader_state(w.ref.t_p)
             self.health.formation_error.add(float(np.linalg.norm(w.xhat[0, 9:12] - h[i, 9:12] - x0[9:12])))
 
@@ -789,7 +846,7 @@ class Companion:
         self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
         present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
         if self._has_path(self.plan.schedule.at(ref.t_p), present):
-            self._rejoin(t_plan)
+            self._rejoin(t_plan, RelativeTo(self._hold, self.leader))
         v = pinned_input(self._design, xhat - ref.h, ref.x0, ref.gamma)
         self._actuate(v, s)
 

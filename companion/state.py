@@ -37,6 +37,11 @@ class Mission:
     """idle, scheduled, flying or done (the flight controller took the vehicle back)."""
     leader_moves: list = field(default_factory=list)
     """The operator's leader commands in force, in order (see companion.leader_with_moves)."""
+    formation_shift_s: float = 0.0
+    """Plan time at which this plan's formation starts (its t = 0): not 0 for a plan put in force
+    during a flight, while the swarm's plan time runs on from the first start."""
+    next_plan: dict | None = None
+    """A plan to put in force during the flight: {"spec", "plan_id", "at_unix_s"}."""
 
 
 class StateStore:

@@ -5,6 +5,7 @@ third-party client, and a relay of the test's own that cuts an upload in the mid
 from __future__ import annotations
 
 import copy
+import math
 import os
 import socket
 import subprocess
@@ -98,6 +99,11 @@ def wait_for(cond, timeout_s: float, what: str) -> None:
         time.sleep(0.1)
 
 
+def start(link: GroundLink, drone: int, pid: int, at_unix_s: float):
+    return link.command(drone, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF],
+                        use_int=True, x=int(at_unix_s), y=int(at_unix_s % 1.0 * 1000.0))
+
+
 def held_plan_id(link: GroundLink, drone: int) -> int:
     return decode_plan(missions.download(link, drone))[1]
 
@@ -146,11 +152,29 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             assert out.ok, out
             assert held_plan_id(link, 2) == flying_id  # staged, not in force: it waits for its start
 
-            # starting a plan in flight is refused with the reason
+            # in flight, a new plan may change the formation, not the design
+            other = copy.deepcopy(spec)
+            other["design"]["coupling_margin"] = 2.0
+            assert missions.upload(link, 1, encode_plan(other)).ok
+            result, why = start(link, 1, decode_plan(encode_plan(other))[1], time.time() + 2.0)
+            assert result == mavlink.MAV_RESULT_DENIED and "not design; land first" in why
+
+            # the new formation (radius 8 m instead of 10) takes over on both at one time: the two
+            # drones, opposite on the circle, end up 16 m apart instead of 20. Its t = 0 is its start,
+            # chosen at a whole turn of the old one (1 rad/s), so only the radius changes
+            assert missions.upload(link, 1, items).ok
             pid = decode_plan(items)[1]
-            result, why = link.command(2, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF],
-                                       use_int=True, x=int(time.time() + 5), y=0)
-            assert result == mavlink.MAV_RESULT_DENIED and "land first" in why
+            at = stack.start_at + 2 * math.pi * math.ceil((time.time() + 2.0 - stack.start_at) / (2 * math.pi))
+            result, why = start(link, 1, pid, at + math.pi)  # half a turn off: 18 m from the old formation
+            assert result == mavlink.MAV_RESULT_DENIED and "start it where the two meet" in why
+            for i in (1, 2):
+                result, why = start(link, i, pid, at)
+                assert result == mavlink.MAV_RESULT_ACCEPTED, why
+            time.sleep(max(0.0, at + 8.0 - time.time()))
+            p1, p2 = (np.array(rec.tracks[i].position_m[-1]) for i in (1, 2))
+            assert np.linalg.norm(p1 - p2) == pytest.approx(16.0, abs=0.1)
+            assert held_plan_id(link, 1) == held_plan_id(link, 2) == pid
+            assert flying(link, 1) and flying(link, 2)
 
             # the leader moves 6 m north at 2 m/s on both drones at once: the pair's midpoint
             # (the centre of a two-drone polygon) follows it
@@ -185,4 +209,4 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
         rows = [line.split("\t") for line in saved.read_text().splitlines()[1:] if line.strip()]
         items = [PlanItem(int(r[3]), tuple(field_value(round(float(v), 6), "wpl") for v in r[4:11])) for r in rows]
         spec_back, pid_back = decode_plan(items)
-        assert pid_back == flying_id and spec_back["name"] == "pair"
+        assert pid_back == pid and spec_back["formation"]["radius_m"] == 8.0

@@ -145,3 +145,23 @@ def test_reshaping_example_flies_within_the_papers_bounds():
     # the window holds the whole reshaping: the line at 30 s, the triangle from 40 s
     ref_30, _ = plan.reference(30.0)
     assert np.allclose(ref_30[:, 9], 0.0) and np.allclose(ref_30[:, 11], 24.0)
+
+
+def test_plan_upload_refuses_an_infeasible_plan_before_sending(tmp_path):
+    """`plan upload` runs the same checks first: exit 2, one sentence, and not a byte on the wire."""
+    import socket
+
+    path = bad_plan(tmp_path, [('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")])
+    drone = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    drone.bind(("127.0.0.1", 0))
+    drone.settimeout(0.5)
+    try:
+        r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "plan", "upload", str(path), "--tlog",
+                            str(tmp_path / "gcs.tlog"), "--drone", f"1=udpout:127.0.0.1:{drone.getsockname()[1]}"],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, r.stdout + r.stderr
+        assert r.stderr.count("\n") == 1 and "feasibility condition (76)" in r.stderr and str(path) in r.stderr
+        with pytest.raises(socket.timeout):
+            drone.recv(65536)
+    finally:
+        drone.close()

@@ -120,7 +120,7 @@ def test_companion_killed_and_restarted(tmp_path):
             alive = {k: v for k, v in stack.alive().items() if k != "companion-2"}
             assert all(alive.values()), alive
         stack.start_companion(2)
-        sleep_until(start + 60.0, stack)
+        sleep_until(start + 64.0, stack)
 
     # the vehicle of the dead companion: failsafe hold within FS_TIMEOUT (0.3 s) and a heartbeat, then land
     modes = [(t - t_kill, mode) for t, mode, armed in rec.modes[2] if t > t_kill - 1.0]
@@ -144,10 +144,15 @@ def test_companion_killed_and_restarted(tmp_path):
     assert any("in formation" in text and 39.5 < t < 41.0 for t, text in texts), texts  # path back at 40 s
     assert _braked(rec, start, drone=3), "agent 3 did not brake to a stop while holding"
 
-    # everyone back in formation, the restarted agent 2 included (its way back from the failsafe
-    # landing, some 15 m and 10 m/s off the formation, takes about 10 s at REJOIN_ACCEL = 4 m/s^2)
-    ok, worst = judge(plan, rec, start, 54.0, 60.0)
-    assert ok, f"54-60 s after the restart: {worst}"
+    # everyone back in formation, the restarted agent 2 included: it flies again within 10 s of its
+    # restart (imports, Zenoh, its flight controller: about 4 s on an idle machine), and its way back
+    # from the failsafe landing, some 20-35 m and 10 m/s off the formation, takes about 10 s at
+    # REJOIN_ACCEL = 4 m/s^2
+    back = [t - start for t, agent, status, _ in bus.statuses if agent == 2 and status == "FLYING" and t > start + 40.0]
+    assert back and back[0] < 50.0, f"agent 2 did not fly again within 10 s of its restart: {back[:1]}"
+    t_from = max(54.0, back[0] + 11.0)
+    ok, worst = judge(plan, rec, start, t_from, 64.0)
+    assert ok, f"{t_from:.1f}-64 s, after the restart at 40 s and the rejoin from {back[0]:.1f} s: {worst}"
     stats = stack.stats("2")
     assert stats["tick_errors"] == 0
     assert "resuming plan after restart" in stack.log("companion-2")
