@@ -118,17 +118,19 @@ class Recorder:
         """Every vehicle resampled on a common plan-time grid: (t (T,), position (T, N, 3), euler
         (T, N, 3)), plan time t = unix - start_unix. Each vehicle's samples are interpolated."""
         sysids = sorted(self.tracks)
-        spans = [np.asarray(self.tracks[s].t_unix) - start_unix for s in sysids]
+        # the recording may go on meanwhile: take each track as far as all three lists reach now
+        counts = [min(len(tr.t_unix), len(tr.position_m), len(tr.euler_rad)) for tr in map(self.tracks.get, sysids)]
+        spans = [np.asarray(self.tracks[s].t_unix[:n]) - start_unix for s, n in zip(sysids, counts)]
         lo = max(sp[0] for sp in spans) if t_from is None else t_from
         hi = min(sp[-1] for sp in spans) if t_to is None else t_to
         t = np.arange(lo, hi, dt_s)
         pos = np.zeros((t.size, len(sysids), 3))
         eta = np.zeros((t.size, len(sysids), 3))
-        for k, s in enumerate(sysids):
+        for k, (s, n) in enumerate(zip(sysids, counts)):
             tr = self.tracks[s]
             ts = spans[k]
-            p = np.asarray(tr.position_m)
-            e = np.unwrap(np.asarray(tr.euler_rad), axis=0)
+            p = np.asarray(tr.position_m[:n])
+            e = np.unwrap(np.asarray(tr.euler_rad[:n]), axis=0)
             for c in range(3):
                 pos[:, k, c] = np.interp(t, ts, p[:, c])
                 eta[:, k, c] = np.interp(t, ts, e[:, c])

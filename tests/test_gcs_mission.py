@@ -171,8 +171,9 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
                 result, why = start(link, i, pid, at)
                 assert result == mavlink.MAV_RESULT_ACCEPTED, why
             time.sleep(max(0.0, at + 8.0 - time.time()))
-            p1, p2 = (np.array(rec.tracks[i].position_m[-1]) for i in (1, 2))
-            assert np.linalg.norm(p1 - p2) == pytest.approx(16.0, abs=0.1)
+            t_now = time.time() - stack.start_at
+            _, pos, _ = rec.arrays(stack.start_at, t_from=t_now - 1.5, t_to=t_now - 0.5)
+            np.testing.assert_allclose(np.linalg.norm(pos[:, 0] - pos[:, 1], axis=1), 16.0, atol=0.1)
             assert held_plan_id(link, 1) == held_plan_id(link, 2) == pid
             assert flying(link, 1) and flying(link, 2)
 
@@ -186,13 +187,9 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
                 assert result == mavlink.MAV_RESULT_ACCEPTED, why
             move_s = 1.875 * 6.0 / 2.0
             time.sleep(max(0.0, at + move_s + 4.0 - link.param(1, COMP_ONBOARD, "PLAN_T_S")))
-            now = time.time()
-            mids = []
-            for k in range(10):  # ten instants of the last second, from the flight controllers' own telemetry
-                t = now - 1.0 + 0.1 * k
-                p = [np.interp(t, rec.tracks[i].t_unix, np.asarray(rec.tracks[i].position_m)[:, a]) for i in (1, 2) for a in range(3)]
-                mids.append((np.array(p[:3]) + np.array(p[3:])) / 2)
-            np.testing.assert_allclose(np.mean(mids, axis=0), [11.0, -5.0, 20.0], atol=0.1)
+            t_now = time.time() - stack.start_at  # the last second, from the flight controllers' own telemetry
+            _, pos, _ = rec.arrays(stack.start_at, t_from=t_now - 1.5, t_to=t_now - 0.5)
+            np.testing.assert_allclose(pos.mean(axis=1), np.tile([11.0, -5.0, 20.0], (len(pos), 1)), atol=0.1)
             assert flying(link, 1) and flying(link, 2)
 
         # MAVProxy, a third-party client, downloads the plan drone 1 holds from component 191
