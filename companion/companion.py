@@ -65,6 +65,7 @@ ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
 SWITCH_MAX_JUMP = (5.0, 5.0)  # in flight, a new formation may start this far from the old one [m, m/s]
+WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m": 1.0, "altitude_m": 1.0, "rate_rad_s": 0.0}}
 LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
@@ -384,6 +385,8 @@ class Companion:
         loop = asyncio.get_running_loop()
         self.loop = loop
         self.load_mission()
+        if self.plan is None:  # the kernels now, not when a plan starts (a first compile takes seconds)
+            FormationController.warm_up(plan_from_dict(WARM_UP_PLAN).design, self.opts.rate_hz)
         self.fc_link = MavLink("fc", self.opts.fc_url, self.agent, COMP_ONBOARD)
         self.gcs_link = MavLink("gcs", self.opts.gcs_url, self.agent, COMP_ONBOARD)
         if self.signing_key is not None:
@@ -433,11 +436,7 @@ class Companion:
                                         thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
         omega, alpha = model.hover_trim(plan.airframe)
         self._idle = (omega * IDLE_FRACTION, alpha)
-        # Load the compiled kernels now (a few hundred milliseconds), not at the first tick in the air.
-        scratch = FormationController(self._design, 1, self.opts.rate_hz)
-        scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
-        scratch.observe(np.r_[np.zeros(5), 1.0][None, :])
-        scratch.actuate(np.zeros((1, 6)))
+        FormationController.warm_up(self._design, self.opts.rate_hz)
         self.bus.publish_status(AgentStatus.IDLE)
 
     def _zenoh_config(self, n_agents: int):

@@ -74,6 +74,15 @@ class Actuation:
 class FormationController:
     """Observer, delay predictor, thrust adaptation, RFL and actuator inverse for N agents."""
 
+    @staticmethod
+    def warm_up(design: Design, rate_hz: float) -> None:
+        """Compile the kernels (or load them from numba's cache) now, on a scratch controller, not
+        at the first tick in the air: a first compile takes seconds, a cache load some 300 ms."""
+        scratch = FormationController(design, 1, rate_hz)
+        scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
+        scratch.observe(np.r_[np.zeros(5), 1.0][None, :])
+        scratch.actuate(np.zeros((1, 6)))
+
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0)) -> None:
         if not (np.isfinite(rate_hz) and rate_hz > 0):

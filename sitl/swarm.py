@@ -73,6 +73,7 @@ class SitlSwarm:
         self.omega_cmd = np.zeros((n, 3))
         self.alpha_cmd = np.zeros((n, 3))
         self.inner = FormationController(autopilot_design(airframe), n, 1.0 / self.control_dt_s)
+        FormationController.warm_up(self.inner.design, 1.0 / self.control_dt_s)  # not at the first takeoff
         self.inner.reset(self.plant.observe().paper_state())
         self.inner_ref: list[QuinticTransfer | None] = [None] * n
         self._hover_omega = float(model.hover_trim(airframe)[0][0])
