@@ -48,7 +48,7 @@ from triswarm.protocol.airframe import TABLE_1, ParameterError
 from triswarm.protocol.formation import (Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, Shifted,
                                          rejoin_duration)
 from triswarm.protocol.graph import Topology
-from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators,
+from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators, mode_name,
                                        local_ned_to_paper, mavlink, rates_to_paper, read_signing_key, setup_signing)
 from triswarm.protocol.plan import Plan, PlanError, in_flight_change_problem, plan_from_dict, spec_from_toml
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
@@ -495,7 +495,7 @@ class Companion:
                 if not fc.armed:
                     self._release("disarmed")
                 elif fc.mode != CustomMode.EXTERNAL and msg.system_status != mavlink.MAV_STATE_CRITICAL:
-                    self._release(f"the flight controller is in {_mode_name(fc.mode)}")
+                    self._release(f"the flight controller is in {mode_name(fc.mode)}")
         elif t == "ATTITUDE":
             fc.att = (msg.time_boot_ms, attitude_to_paper(msg.roll, msg.pitch, msg.yaw),
                       rates_to_paper(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
@@ -1055,13 +1055,6 @@ class Companion:
         if hasattr(self, "bus"):
             out["zenoh"] = self.bus.counts()
         return out
-
-
-def _mode_name(mode: int) -> str:
-    try:
-        return CustomMode(mode).name
-    except ValueError:
-        return f"mode {mode}"
 
 
 def default_start_time(now: float) -> float:

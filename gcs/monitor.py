@@ -15,7 +15,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, CustomMode, mavlink
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, mode_name
 
 from .errors import UserError, console, user_errors
 from .link import Seen, Subscription
@@ -58,7 +58,7 @@ def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[flo
             "drone": i,
             "age_s": now - max(times) if times else None,
             "armed": armed,
-            "mode": None if hb is None else _mode_name(hb.custom_mode),
+            "mode": None if hb is None else mode_name(hb.custom_mode),
             "failsafe": bool(armed and hb.system_status == mavlink.MAV_STATE_CRITICAL) or _failsafe_said(fc_texts, now),
             "phase": None if comp_hb is None else PHASES.get(comp_hb.custom_mode, f"phase {comp_hb.custom_mode}"),
             "form_err_m": named.get("FORM_ERRM"),
@@ -70,13 +70,6 @@ def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[flo
             "text": None if last_text is None else last_text[2],
         })
     return out
-
-
-def _mode_name(mode: int) -> str:
-    try:
-        return CustomMode(mode).name
-    except ValueError:
-        return f"mode {mode}"
 
 
 def _failsafe_said(texts: list[tuple[float, int, str]], now: float) -> bool:

@@ -55,6 +55,14 @@ class CustomMode(enum.IntEnum):
     TAKEOFF = 4
 
 
+def mode_name(mode: int) -> str:
+    """A HEARTBEAT custom_mode by name (EXTERNAL, HOLD, ...), or "mode N" for one we do not know."""
+    try:
+        return CustomMode(mode).name
+    except ValueError:
+        return f"mode {mode}"
+
+
 def new_codec(sysid: int, compid: int) -> "mavlink.MAVLink":
     """A MAVLink 2 encoder/parser for one link: robust parsing (bad frames become BAD_DATA)."""
     mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)

@@ -130,3 +130,27 @@ def judge(plan, recorder, start_unix: float, t_from: float, t_to: float, drones=
     report = {int(c) + 1: (round(float(p), 4), round(float(a), 4)) for c, p, a in zip(cols, worst_p, worst_a)}
     ok = bool((worst_p <= position_bound_m).all() and (worst_a <= attitude_bound_rad).all())
     return ok, report
+
+
+def small_plan(spec: dict, drones: int, name: str) -> dict:
+    """The paper's plan for fewer drones, over the two-chain graph alone (its families extend to any N)."""
+    import copy
+
+    spec = copy.deepcopy(spec)
+    spec.update(name=name, drones=drones, topology={"switch_period_s": 5.0, "families": ["two-chain"]})
+    return spec
+
+
+def wait_for(cond, timeout_s: float, what: str, poll_s: float = 0.1) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
+        time.sleep(poll_s)
+
+
+def flying(link, drone: int) -> bool:
+    """Seen from a gcs.link.GroundLink: the flight controller in EXTERNAL, the companion flying."""
+    from triswarm.protocol.mavlink import CustomMode
+
+    fc, companion = link.autopilot(drone).heartbeat, link.companion(drone).heartbeat
+    return fc is not None and fc.custom_mode == CustomMode.EXTERNAL and companion is not None and companion.custom_mode == 2

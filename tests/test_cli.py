@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from .conftest import PAPER_PLAN_FILE
+from .conftest import paper_plan_variant
 
 
 def triswarm(*args, cwd=None, timeout=120):
@@ -46,35 +46,25 @@ def bad(tmp_path, *args):
     return lines[0]
 
 
-def write_plan(tmp_path, replace):
-    text = PAPER_PLAN_FILE.read_text()
-    for old, new in replace:
-        assert old in text
-        text = text.replace(old, new)
-    path = tmp_path / "plan.toml"
-    path.write_text(text)
-    return path
-
-
 def test_nan_parameter(tmp_path):
     assert "--duration must be a finite number" in bad(tmp_path, "sim", "--duration", "nan")
     assert "--servo-delay-s must not be negative" in bad(tmp_path, "sim", "--servo-delay-s", "-0.01")
 
 
 def test_negative_mass_in_a_scenario_file(tmp_path):
-    path = write_plan(tmp_path, [("[leader]", "[airframe]\nmass_kg = -0.5\n\n[leader]")])
+    path = paper_plan_variant(tmp_path, [("[leader]", "[airframe]\nmass_kg = -0.5\n\n[leader]")])
     line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")
     assert "plan.toml" in line and "mass_kg must be positive" in line
 
 
 def test_nan_in_a_scenario_file(tmp_path):
-    path = write_plan(tmp_path, [("radius_m = 10.0", "radius_m = nan")])
+    path = paper_plan_variant(tmp_path, [("radius_m = 10.0", "radius_m = nan")])
     assert "formation.radius_m must be a finite number" in bad(tmp_path, "sim", "--scenario", str(path))
 
 
 def test_infeasible_formation_in_a_scenario_file(tmp_path):
     offsets = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
-    path = write_plan(tmp_path, [('type = "rotating-polygon"', f'type = "constant"\noffsets = [{offsets}]'),
+    path = paper_plan_variant(tmp_path, [('type = "rotating-polygon"', f'type = "constant"\noffsets = [{offsets}]'),
                                  ("radius_m = 10.0\n", ""), ("altitude_m = 20.0\n", ""), ("rate_rad_s = 1.0\n", ""),
                                  ('attitude_rad = "paper-alternating"\n', "")])
     line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")

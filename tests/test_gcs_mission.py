@@ -22,20 +22,14 @@ from triswarm.gcs import missions
 from triswarm.gcs.link import GroundLink
 from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.stack import Stack
-from triswarm.protocol.mavlink import COMP_ONBOARD, CustomMode, mavlink
+from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanItem, decode_plan, encode_plan, field_value
 
 
+from .stack_helpers import flying, small_plan, wait_for
+
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def two_drone_spec(spec: dict) -> dict:
-    spec = copy.deepcopy(spec)
-    spec["name"] = "pair"
-    spec["drones"] = 2
-    spec["topology"] = {"switch_period_s": 5.0, "families": ["two-chain"]}
-    return spec
 
 
 class CuttableRelay:
@@ -87,18 +81,6 @@ class CuttableRelay:
                 self.sock.sendto(data, self._client)
 
 
-def flying(link: GroundLink, drone: int) -> bool:
-    hb, comp = link.autopilot(drone).heartbeat, link.companion(drone).heartbeat
-    return hb is not None and hb.custom_mode == CustomMode.EXTERNAL and comp is not None and comp.custom_mode == 2
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
-        time.sleep(0.1)
-
-
 def start(link: GroundLink, drone: int, pid: int, at_unix_s: float):
     return link.command(drone, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF],
                         use_int=True, x=int(at_unix_s), y=int(at_unix_s % 1.0 * 1000.0))
@@ -111,7 +93,7 @@ def held_plan_id(link: GroundLink, drone: int) -> int:
 def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
     import tomllib
 
-    spec = two_drone_spec(paper_spec)
+    spec = small_plan(paper_spec, 2, "pair")
     plan_file = tmp_path / "pair.toml"
     plan_file.write_text(tomli_w.dumps(spec))
     flying_id = decode_plan(encode_plan(tomllib.loads(plan_file.read_text())))[1]

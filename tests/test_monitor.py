@@ -3,14 +3,12 @@ command against a fake drone (refresh, --duration-s, Ctrl-C), and the whole stac
 
 from __future__ import annotations
 
-import copy
 import io
 import signal
 import socket
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 import tomli_w
@@ -20,6 +18,8 @@ from triswarm.gcs.link import GroundLink, Seen
 from triswarm.gcs.monitor import rows, table
 from triswarm.gcs.stack import Stack
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, CustomMode, mavlink, new_codec
+
+from .stack_helpers import flying, small_plan, wait_for
 
 NOW = 1_700_000_000.0
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
@@ -209,27 +209,13 @@ def test_plain_tables_for_a_duration_and_ctrl_c_exits_cleanly(tmp_path):
         assert proc.returncode == 0 and "Traceback" not in err, err
 
 
-def two_drone_spec(spec: dict) -> dict:
-    spec = copy.deepcopy(spec)
-    spec.update(name="pair", drones=2, topology={"switch_period_s": 5.0, "families": ["two-chain"]})
-    return spec
-
-
-def flying(link: GroundLink, drone: int) -> bool:
-    fc, companion = link.autopilot(drone).heartbeat, link.companion(drone).heartbeat
-    return fc is not None and fc.custom_mode == CustomMode.EXTERNAL and companion is not None and companion.custom_mode == 2
-
-
 @pytest.mark.slow
 def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
     plan_file = tmp_path / "pair.toml"
-    plan_file.write_text(tomli_w.dumps(two_drone_spec(paper_spec)))
+    plan_file.write_text(tomli_w.dumps(small_plan(paper_spec, 2, "pair")))
     with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=8) as stack:
         with GroundLink(stack.endpoints()) as link:
-            deadline = time.monotonic() + 40.0
-            while not (flying(link, 1) and flying(link, 2)):
-                assert time.monotonic() < deadline, "both drones in formation within 40 s"
-                time.sleep(0.1)
+            wait_for(lambda: flying(link, 1) and flying(link, 2), 40.0, "both drones in formation")
         # the monitor is now the only ground station: a companion answers the last one that spoke
         done = subprocess.run(triswarm("monitor", "--manifest", str(stack.swarm_manifest), "--once",
                                        "--tlog", str(tmp_path / "monitor.tlog")),

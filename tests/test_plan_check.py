@@ -14,7 +14,7 @@ from triswarm.gcs.scenarios import load_plan
 from triswarm.protocol import metrics
 from triswarm.sitl.simulation import SimConfig, simulate
 
-from .conftest import PAPER_PLAN_FILE, ROOT
+from .conftest import PAPER_PLAN_FILE, paper_plan_variant, ROOT
 
 EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
 
@@ -74,16 +74,6 @@ def test_json_summary_has_the_eigenvalues_of_every_topology():
     assert all(v < 0 for v in summary["design"]["stability_margins"].values())
 
 
-def bad_plan(tmp_path, replace):
-    text = PAPER_PLAN_FILE.read_text()
-    for old, new in replace:
-        assert old in text
-        text = text.replace(old, new)
-    path = tmp_path / "plan.toml"
-    path.write_text(text)
-    return path
-
-
 POLYGON = 'radius_m = 10.0\naltitude_m = 20.0\nrate_rad_s = 1.0\nattitude_rad = "paper-alternating"\n'
 FAMILIES = 'families = ["two-chain", "triangles", "reverse-two-chain"]'
 OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
@@ -106,7 +96,7 @@ OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}
 ], ids=["missing-field", "ragged-array", "short-array", "unknown-type", "negative-period", "no-spanning-tree",
         "infeasible-76", "keyframes-out-of-order"])
 def test_bad_plan_ends_with_one_sentence_naming_file_drone_and_field(tmp_path, replace, field, drone):
-    path = bad_plan(tmp_path, replace)
+    path = paper_plan_variant(tmp_path, replace)
     r = plan_check(path)
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert "Traceback" not in r.stderr and r.stdout == ""
@@ -151,7 +141,7 @@ def test_plan_upload_refuses_an_infeasible_plan_before_sending(tmp_path):
     """`plan upload` runs the same checks first: exit 2, one sentence, and not a byte on the wire."""
     import socket
 
-    path = bad_plan(tmp_path, [('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")])
+    path = paper_plan_variant(tmp_path, [('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")])
     drone = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     drone.bind(("127.0.0.1", 0))
     drone.settimeout(0.5)

@@ -4,7 +4,6 @@ from ground stations with the key, without it, with another key, and from a repl
 
 from __future__ import annotations
 
-import copy
 import secrets
 import socket
 import subprocess
@@ -21,22 +20,9 @@ from triswarm.protocol.mavlink import (COMP_AUTOPILOT, COMP_ONBOARD, SIGNATURE_R
                                        read_signing_key, setup_signing)
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
+from .stack_helpers import small_plan, wait_for
+
 KEY = bytes(range(1, 33))
-
-
-def one_drone_spec(spec: dict) -> dict:
-    spec = copy.deepcopy(spec)
-    spec["name"] = "solo"
-    spec["drones"] = 1
-    spec["topology"] = {"switch_period_s": 5.0, "families": ["two-chain"]}
-    return spec
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
-        time.sleep(0.05)
 
 
 # -- the key file ---------------------------------------------------------------------------------
@@ -109,7 +95,7 @@ def heard_companion(link: GroundLink) -> None:
 def test_the_companion_takes_only_signed_frames_from_the_ground(tmp_path, paper_spec):
     keyfile = tmp_path / "swarm.key"
     keyfile.write_text(KEY.hex() + "\n")
-    items = encode_plan(one_drone_spec(paper_spec))
+    items = encode_plan(small_plan(paper_spec, 1, "solo"))
     with Stack(None, tmp_path / "stack", 1, companion_args={1: ["--signing-key", str(keyfile)]}) as stack:
         endpoints = stack.endpoints()
 
