@@ -243,11 +243,13 @@ from .plot_cmd import plot  # noqa: E402
 from .swarm_cmd import register  # noqa: E402
 from .demo import demo  # noqa: E402
 from .monitor import monitor  # noqa: E402
+from .pki_cmd import pki_app  # noqa: E402
 
 app.command("plot")(plot)
 app.command("demo")(demo)
 app.command("monitor")(monitor)
 register(app, plan_app)
+app.add_typer(pki_app, name="pki")
 
 
 def main() -> None:
