@@ -28,12 +28,16 @@ test: $(STAMP) netns-tools lint
 lint: $(STAMP)
 	$(PY) -m ruff check --quiet .
 
-# The lossy-network test impairs Zenoh inside a network namespace with iptables (Debian package).
-# As root, install it when missing; otherwise that test says what it needs.
+# The lossy-network test impairs Zenoh inside a network namespace with iptables (Debian package), and
+# the deploy test runs its own OpenSSH server (openssh-server, which brings ssh and scp).
+# As root, install them when missing; otherwise those tests say what they need.
 netns-tools:
 	@{ command -v iptables && command -v ip; } >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
 		{ echo "installing iptables and iproute2 (apt-get) for the network tests"; \
 		  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iptables iproute2 >/dev/null; }
+	@{ [ -x /usr/sbin/sshd ] && command -v ssh && command -v scp; } >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
+		{ echo "installing openssh-server (apt-get) for the deploy tests"; \
+		  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq openssh-server >/dev/null; }
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py

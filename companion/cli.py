@@ -21,9 +21,11 @@ app = typer.Typer(add_completion=False, rich_markup_mode=None)
 
 @app.command()
 def companion(
-    id: Annotated[int, typer.Option("--id", help="This drone's number in the swarm (its MAVLink system id).")],
-    fc: Annotated[str, typer.Option(help="Flight-controller link (pymavlink connection string).")],
-    gcs: Annotated[str, typer.Option(help="Ground-station link (pymavlink connection string).")],
+    ctx: typer.Context,
+    id: Annotated[Optional[int], typer.Option("--id", help="This drone's number in the swarm (its MAVLink system id).")] = None,
+    fc: Annotated[Optional[str], typer.Option(help="Flight-controller link (pymavlink connection string, or a serial "
+                                                   "port DEVICE:BAUD).")] = None,
+    gcs: Annotated[Optional[str], typer.Option(help="Ground-station link (pymavlink connection string).")] = None,
     plan: Annotated[Optional[Path], typer.Option(help="Plan file (TOML).")] = None,
     autostart: Annotated[bool, typer.Option(help="Arm, take off and start the plan at the common start time.")] = False,
     start_at: Annotated[Optional[float], typer.Option(help="Common start time [s since the Unix epoch] "
@@ -42,8 +44,25 @@ def companion(
                                                              "sign the ground-station link and refuse its unsigned "
                                                              "commands, plans and parameter changes.")] = None,
     verbose: Annotated[bool, typer.Option(help="Log more.")] = False,
+    config: Annotated[Optional[Path], typer.Option(help="Per-drone configuration (TOML, keys named like these options; "
+                                                        "see deploy/drone.example.toml). Options given here win.")] = None,
+    check: Annotated[bool, typer.Option(help="With --config: check the configuration, the flight controller's port, "
+                                             "Zenoh, the signing key and the state folder, one line each; exit 0 or 1.")] = False,
 ) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
+    from .config import explicit_options, resolve_options, run_checks
+
+    if check:
+        raise typer.Exit(code=run_checks(config, ctx.params, explicit_options(ctx)))
+    try:
+        o = resolve_options(config, ctx.params, explicit_options(ctx))
+    except ValueError as exc:
+        print(f"triswarm-companion: error: {exc}", file=sys.stderr)
+        raise typer.Exit(code=2) from None
+    id, fc, gcs, plan, autostart, start_at = o["id"], o["fc"], o["gcs"], o["plan"], o["autostart"], o["start_at"]
+    zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
+    zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
+    swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
     from .companion import Companion, CompanionOptions, write_stats
 
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,

@@ -244,12 +244,14 @@ from .swarm_cmd import register  # noqa: E402
 from .demo import demo  # noqa: E402
 from .monitor import monitor  # noqa: E402
 from .pki_cmd import pki_app  # noqa: E402
+from .deploy_cmd import deploy  # noqa: E402
 
 app.command("plot")(plot)
 app.command("demo")(demo)
 app.command("monitor")(monitor)
 register(app, plan_app)
 app.add_typer(pki_app, name="pki")
+app.command("deploy")(deploy)
 
 
 def main() -> None:
