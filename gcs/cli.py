@@ -177,7 +177,9 @@ app.add_typer(sitl_app, name="sitl")
 
 @sitl_app.command("up")
 def sitl_up(
-    n: Annotated[int, typer.Option("-n", "--vehicles", help="Number of vehicles (sysid 1..N).")] = 1,
+    n: Annotated[int, typer.Option("-n", "--vehicles", help="Number of vehicles (sysid K..K+N-1, K = --first-id).")] = 1,
+    first_id: Annotated[int, typer.Option("--first-id", help="System id of the first vehicle (a swarm split over "
+                                                             "several hosts).")] = 1,
     manifest: Annotated[Path, typer.Option(help="Where to write the manifest JSON.")] = Path("sitl-manifest.json"),
     home: Annotated[str, typer.Option(help="Swarm home LAT,LON,ALT_M (the local origin, on the ground).")] = ",".join(f"{x:g}" for x in DEFAULT_HOME),
     speedup: Annotated[float, typer.Option(help="Run physics and streams K times faster than real time.")] = 1.0,
@@ -203,10 +205,12 @@ def sitl_up(
         _finite("physics-hz", physics_hz, positive=True)
         _finite("spacing-m", spacing_m, positive=True)
         _finite("duration", duration, positive=True)
+        if not 1 <= first_id <= 256 - n:
+            raise UserError(f"--first-id {first_id} with {n} vehicles leaves system ids outside 1..255")
         if not 0 <= base_port <= 65535 - 2 * n:
             raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
-                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration)
+                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id)
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)

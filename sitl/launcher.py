@@ -32,6 +32,9 @@ class SitlOptions:
     seed: int = 0
     duration_s: float | None = None
     """Stop by itself after this much simulated time (tests, benchmarks)."""
+    first_id: int = 1
+    """System id of the first vehicle: vehicle i (from 1) is system first_id + i - 1 (a swarm split over
+    several hosts); its resting place follows its id (``swarm.ground_grid``)."""
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -49,7 +52,7 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
-                      seed=opts.seed)
+                      seed=opts.seed, first_id=opts.first_id)
     for fc in swarm.fcs:
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)

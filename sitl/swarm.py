@@ -31,11 +31,18 @@ from .physics import QUAT, Plant, quaternion_from_euler
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
 
 
-def ground_grid(n: int, spacing_m: float = 2.5) -> np.ndarray:
-    """Resting places on the ground, a few metres apart, in rows, centred on the origin (paper frame)."""
-    cols = max(1, math.ceil(math.sqrt(n)))
-    rows = math.ceil(n / cols)
-    k = np.arange(n)
+def ground_grid(n: int, spacing_m: float = 2.5, first_id: int = 1) -> np.ndarray:
+    """Resting places on the ground, a few metres apart, in rows, centred on the origin (paper frame).
+
+    With ``first_id`` K > 1 (vehicles K .. K+n-1 of a swarm split over several processes), each
+    vehicle rests where it would if one process flew vehicles 1 .. K+n-1: its place follows its id,
+    so the vehicles of different processes do not start on top of each other."""
+    if first_id < 1:
+        raise ValueError(f"the first vehicle id must be at least 1, got {first_id}")
+    total = first_id - 1 + n
+    cols = max(1, math.ceil(math.sqrt(total)))
+    rows = math.ceil(total / cols)
+    k = np.arange(first_id - 1, total)
     north = (k // cols - (rows - 1) / 2.0) * spacing_m
     west = ((cols - 1) / 2.0 - k % cols) * spacing_m
     return np.stack([north, west, np.zeros(n)], axis=1)
@@ -52,7 +59,7 @@ def autopilot_design(airframe: Airframe):
 class SitlSwarm:
     def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
                  physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
-                 boot_unix_s: float | None = None) -> None:
+                 boot_unix_s: float | None = None, first_id: int = 1) -> None:
         if n < 1:
             raise ValueError(f"a swarm needs at least one vehicle, got {n}")
         self.n = n
@@ -61,11 +68,13 @@ class SitlSwarm:
         dt_s = 1.0 / self.physics_hz
         self.control_every = max(1, int(round(self.physics_hz / control_hz)))
         self.control_dt_s = self.control_every * dt_s
-        self.start_m = ground_grid(n, spacing_m)
+        if not 1 <= first_id <= 256 - n:
+            raise ValueError(f"system ids {first_id}..{first_id + n - 1} are not all within 1..255")
+        self.start_m = ground_grid(n, spacing_m, first_id)
         self.plant = Plant(airframe, n, dt_s=dt_s)
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
-        self.fcs = [FlightController(i + 1, airframe, self.home, self.start_m[i], boot) for i in range(n)]
+        self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot) for i in range(n)]
         self.rng = np.random.default_rng(seed)
         self._rows: Snapshot | None = None
         self._rows_step = -1
