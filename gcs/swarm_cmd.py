@@ -214,7 +214,7 @@ def _leader(link: GroundLink, chosen: list[int], command: int, params: list[floa
     return command_all(link, chosen, COMP_ONBOARD, command, params)
 
 
-@leader_app.command("goto")
+@leader_app.command("goto", context_settings={"ignore_unknown_options": True})  # "-5" is a number, not an option
 def leader_goto(
     x_m: Annotated[float, typer.Argument(help="x [m], north of home (the plan's earth frame: x north, y west, z up).")],
     y_m: Annotated[float, typer.Argument(help="y [m], west of home.")],

@@ -117,3 +117,11 @@ def test_sitl_up_stops_cleanly_on_sigint(tmp_path):
     assert proc.returncode == 0, err
     assert "sysid" in out and "udpout:127.0.0.1:" in out and "stopped after" in out
     assert "Traceback" not in err
+
+
+def test_leader_goto_takes_negative_coordinates(tmp_path):
+    """y is west in the plan's frame: `leader goto 8 -5 0` must read -5 as a number, not an option."""
+    r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "leader", "goto", "8", "-5", "0", "--speed", "3",
+                        "--manifest", str(tmp_path / "none.json"), "--tlog", str(tmp_path / "g.tlog")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "no such swarm manifest" in r.stderr, r.stderr
