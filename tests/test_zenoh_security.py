@@ -32,8 +32,8 @@ from triswarm.gcs.pki_cmd import pki_app
 from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, alive_key, estimate_key
 
-PLAN = 0x5EED
-XI = np.linspace(-1.0, 1.0, 12)
+from .test_bus import PLAN, XI, until
+
 DENIED_WAIT_S = 2.0     # how long a denied put must stay undelivered
 REFUSED_WAIT_S = 2.0
 OPEN_TIMEOUT_S = 15.0   # bound on zenoh.open itself (a refused one raises in milliseconds)
@@ -338,17 +338,6 @@ def test_two_routers_forward_between_them_and_each_enforces(tmp_path, clients):
 
 
 # -- (d) the companion's bus -------------------------------------------------------------------
-
-async def until(predicate, timeout_s: float, buses=()) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for b in buses:
-            b.drain()
-        if predicate():
-            return True
-        await asyncio.sleep(0.01)
-    return predicate()
-
 
 def test_the_companion_bus_on_generated_configs(swarm, router):
     async def scenario():
