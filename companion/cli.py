@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import signal
 import sys
 from pathlib import Path
@@ -68,14 +67,6 @@ def companion(
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s companion {id}: %(message)s")
     try:
-        if id < 1 or id > 255:
-            raise ValueError(f"--id must be a MAVLink system id between 1 and 255, got {id}")
-        if not (math.isfinite(rate_hz) and 1.0 <= rate_hz <= 2000.0):
-            raise ValueError(f"--rate-hz must be between 1 and 2000, got {rate_hz}")
-        if start_at is not None and not math.isfinite(start_at):
-            raise ValueError(f"--start-at must be a finite number of seconds, got {start_at}")
-        if zenoh_mode not in ("peer", "client"):
-            raise ValueError(f"--zenoh-mode must be peer or client, got {zenoh_mode!r}")
         opts = CompanionOptions(agent=id, fc_url=fc, gcs_url=gcs, plan_path=plan, autostart=autostart,
                                 start_at_unix_s=start_at, zenoh_config=zenoh_config,
                                 zenoh_listen=tuple(zenoh_listen or ()), zenoh_connect=tuple(zenoh_connect or ()),

@@ -25,6 +25,7 @@ Nothing is written, and nothing is sent to the flight controller.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import stat
@@ -142,8 +143,8 @@ def explicit_options(ctx) -> set[str]:
 
 def resolve_options(config_path: Path | None, params: dict[str, Any], given: set[str]) -> dict[str, Any]:
     """The companion's options: the configuration file's, overridden by those given on the
-    command line. Checks that --id, --fc and --gcs are known, and writes a serial port's baud rate
-    the way pymavlink reads it (DEVICE,BAUD)."""
+    command line. Checks that --id, --fc and --gcs are known and every value in range, and writes a
+    serial port's baud rate the way pymavlink reads it (DEVICE,BAUD)."""
     values = dict(params)
     if config_path is not None:
         for name, value in load_config(config_path).items():
@@ -153,6 +154,14 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
         if values.get(name) is None:
             where = f" or set {name} in {config_path}" if config_path is not None else " (or use --config FILE)"
             raise ValueError(f"--{name} is missing: give it{where}")
+    if not 1 <= values["id"] <= 255:
+        raise ValueError(f"--id must be a MAVLink system id between 1 and 255, got {values['id']}")
+    if not (math.isfinite(values["rate_hz"]) and 1.0 <= values["rate_hz"] <= 2000.0):
+        raise ValueError(f"--rate-hz must be between 1 and 2000, got {values['rate_hz']}")
+    if values.get("start_at") is not None and not math.isfinite(values["start_at"]):
+        raise ValueError(f"--start-at must be a finite number of seconds, got {values['start_at']}")
+    if values.get("zenoh_mode") not in ("peer", "client"):
+        raise ValueError(f"--zenoh-mode must be peer or client, got {values.get('zenoh_mode')!r}")
     values["fc"] = link_url(values["fc"], "fc")
     values["gcs"] = link_url(values["gcs"], "gcs")
     return values
@@ -224,12 +233,6 @@ def run_checks(config_path: Path | None, params: dict[str, Any], given: set[str]
         return 1
     try:
         v = resolve_options(config_path, params, given)
-        if not 1 <= v["id"] <= 255:
-            raise ValueError(f"id must be a MAVLink system id between 1 and 255, got {v['id']}")
-        if not 1.0 <= float(v["rate_hz"]) <= 2000.0:
-            raise ValueError(f"rate_hz must be between 1 and 2000, got {v['rate_hz']}")
-        if v.get("zenoh_mode") not in ("peer", "client"):
-            raise ValueError(f"zenoh mode must be peer or client, got {v.get('zenoh_mode')!r}")
     except ValueError as exc:
         c.fail("config", str(exc))
         return 1
