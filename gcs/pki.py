@@ -9,8 +9,16 @@ Run where the operator is (``triswarm pki init``). With the ``openssl`` command 
 - per agent i, a client certificate with CN ``agent-<i>``, and one for the ground station, CN ``gcs``.
   The router's access control keys on these common names.
 
-Keys are EC P-256, written 0600. Then the Zenoh configurations (JSON5): one per router (listens on
-``tls/`` only, mTLS, access control) and one per client (``tls/`` to every router, its own certificate).
+Keys are EC P-256, written 0600. Then the Zenoh configurations (JSON5): one per router (mTLS on
+``tls/`` for clients and ``quic/`` for the other routers, access control) and one per client
+(``tls/`` to every router, its own certificate).
+
+Routers mesh over QUIC, not TLS over TCP: Zenoh sets SO_LINGER 10 s on its TCP sockets (a
+compile-time constant) and closes a dead link's socket from a worker thread of its runtime, so a
+router that loses another (a host out of radio range: nothing acknowledges what is queued) has that
+thread blocked in close() for 10 s. Two such links block both of the default receive workers, and
+the router stops forwarding altogether, even between its own clients. QUIC runs over UDP and closes
+without lingering.
 
 Re-running keeps the CA and every certificate that is still valid (signed by the CA, not expired,
 same name, matching key); it makes what is missing and rewrites the configurations. ``force``
@@ -69,8 +77,18 @@ class Router:
 
     @property
     def endpoint(self) -> str:
+        """Where clients connect (TLS over TCP)."""
+        return f"tls/{self._address}"
+
+    @property
+    def mesh_endpoint(self) -> str:
+        """Where the other routers connect (QUIC, the same port number on UDP)."""
+        return f"quic/{self._address}"
+
+    @property
+    def _address(self) -> str:
         host = f"[{self.host}]" if isinstance(self.ip, ipaddress.IPv6Address) else self.host
-        return f"tls/{host}:{self.port}"
+        return f"{host}:{self.port}"
 
     @property
     def san(self) -> str:
@@ -324,7 +342,7 @@ def access_control(swarm: str, drones: int, routers: list[Router]) -> dict:
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def _link(layout: Layout, name: str, listen: bool) -> dict:
+def _link(layout: Layout, name: str, listen: bool, protocols: list[str]) -> dict:
     tls = {"root_ca_certificate": layout.remote("ca.pem")}
     if listen:
         tls |= {"listen_private_key": layout.remote(f"{name}.key"), "listen_certificate": layout.remote(f"{name}.pem")}
@@ -335,7 +353,7 @@ def _link(layout: Layout, name: str, listen: bool) -> dict:
         "verify_name_on_connect": True,
         "close_link_on_expiration": True,
     }
-    return {"protocols": ["tls"], "tx": {"lease": 1000, "keep_alive": 4}, "tls": tls}
+    return {"protocols": protocols, "tx": {"lease": 1000, "keep_alive": 4}, "tls": tls}
 
 
 def router_config(layout: Layout, swarm: str, drones: int, routers: list[Router], router: Router,
@@ -343,10 +361,16 @@ def router_config(layout: Layout, swarm: str, drones: int, routers: list[Router]
     listen = f"[{listen_host}]" if ":" in listen_host else listen_host
     return {
         "mode": "router",
-        "listen": {"endpoints": [f"tls/{listen}:{router.port}"]},
-        "connect": {"endpoints": [r.endpoint for r in routers if r != router]},
+        # clients on tls/ (TCP), routers on quic/ (UDP), the same port number
+        "listen": {"endpoints": [f"tls/{listen}:{router.port}", f"quic/{listen}:{router.port}"]},
+        # each pair of routers linked once: a router connects to those listed after it (and so the
+        # last one to none), tries again every 0.2-1 s when one is out of reach, never gives up
+        "connect": {"endpoints": [r.mesh_endpoint for r in routers[routers.index(router) + 1:]],
+                    "timeout_ms": {"router": -1}, "exit_on_failure": {"router": False},
+                    "retry": {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"unicast": {"max_links": 2}, "link": _link(layout, router.name, listen=True)},
+        "transport": {"unicast": {"max_links": 2},
+                      "link": _link(layout, router.name, listen=True, protocols=["tls", "quic"])},
         "access_control": access_control(swarm, drones, routers),
     }
 
@@ -356,8 +380,14 @@ def client_config(layout: Layout, name: str, routers: list[Router]) -> dict:
         "mode": "client",
         "connect": {"endpoints": [r.endpoint for r in routers]},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"unicast": {"max_links": 2}, "link": _link(layout, name, listen=False)},
+        "transport": {"unicast": {"max_links": 2}, "link": _link(layout, name, listen=False, protocols=["tls"])},
     }
+
+
+def read_config(path: Path) -> dict:
+    """A configuration this module wrote: its comment lines, then JSON (ValueError otherwise)."""
+    lines = Path(path).read_text(encoding="utf-8").splitlines()
+    return json.loads("\n".join(line for line in lines if not line.startswith("//")))
 
 
 def _json5(header: str, obj: dict) -> bytes:
@@ -415,7 +445,8 @@ def init(out: Path, swarm: str, drones: int, routers: list[Router] | list[str], 
         header = f"""Zenoh router {r.name} of swarm {swarm}: mTLS and access control. Generated by `triswarm pki init`:
 edit the command line and re-run it rather than this file.
   zenohd -c {r.name}.json5   (or any Python with eclipse-zenoh: zenoh.open(zenoh.Config.from_file(...)))
-It listens on tls/ only: a client must present a certificate signed by ca.pem (enable_mtls), and the
+It listens on tls/ (clients) and quic/ (the other routers, which it also connects to) and nothing
+else: a client must present a certificate signed by ca.pem (enable_mtls), and the
 access control (default deny) keys on its common name: agent-<i> writes only under
 {swarm_prefix(swarm)}/agent/<i>/**, every agent and gcs read. See deploy/README.md."""
         path = layout.config(r.name)

@@ -174,7 +174,9 @@ def test_init_is_idempotent_and_cli(tmp_path):
     assert stat.S_IMODE(os.stat(out).st_mode) == 0o700
     assert pki.alt_names(out / "router-gs.example.org.pem") == {"DNS:gs.example.org"}
     router = json.loads(zenoh.Config.from_file(str(out / "zenoh" / "router-10.1.2.3.json5")).get_json("connect/endpoints"))
-    assert router == ["tls/gs.example.org:7447"]  # routers reach each other
+    assert router == ["quic/gs.example.org:7447"]  # each pair of routers linked once, over QUIC
+    last = zenoh.Config.from_file(str(out / "zenoh" / "router-gs.example.org.json5"))
+    assert json.loads(last.get_json("connect/endpoints")) == []
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
 
     report = pki.init(out, "s", 3, ["10.1.2.3:7500", "gs.example.org"])  # one more drone
@@ -319,8 +321,11 @@ def test_two_routers_forward_between_them_and_each_enforces(tmp_path, clients):
     pki.init(d, name, 2, [f"127.0.0.1:{pa}", f"127.0.0.2:{pb}"], listen_host="127.0.0.1")
     config = lambda n: zenoh.Config.from_file(str(d / "zenoh" / f"{n}.json5"))  # noqa: E731
     b_config = config("router-127.0.0.2")
-    b_config.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.2:{pb}"]))
-    a, b = clients.open(config("router-127.0.0.1")), clients.open(b_config)
+    b_config.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.2:{pb}", f"quic/127.0.0.2:{pb}"]))
+    # A connects to B over QUIC. B is opened first so that A closes first: a router still trying
+    # to reach one that is gone takes 10 s to close (its QUIC connection attempt runs to its timeout)
+    b = clients.open(b_config)
+    a = clients.open(config("router-127.0.0.1"))
     one, two = config("agent-1"), config("agent-2")
     one.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{pa}"]))
     two.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.2:{pb}"]))
