@@ -12,7 +12,9 @@
 #   venv/                   the Python environment of the dependencies (numpy, scipy, numba, zenoh, ...),
 #                           created once with --python (default python3, >= 3.11) and reused
 #   releases/NAME/          one release: lib/ (triswarm itself, pip --target), bin/triswarm-companion,
-#                           companion.toml, signing.key (0600), triswarm-companion.service, the wheel
+#                           companion.toml, signing.key (0600), triswarm-companion.service, the wheel,
+#                           what the configuration names (a plan, a Zenoh configuration; with deploy --pki:
+#                           pki/ca.pem, pki/agent-<i>.pem, pki/agent-<i>.key (0600), pki/agent-<i>.json5)
 #   current -> releases/NAME    the release in force, switched atomically (rename of a symlink)
 #   previous -> releases/NAME   the one before, kept for rollback; an install keeps one more (the previous
 #                               previous, for abort) and deletes the others
@@ -123,10 +125,12 @@ restart_service() {  # install the current release's unit, restart, and make sur
         useradd --system --user-group --home-dir /var/lib/triswarm --no-create-home \
             --shell /usr/sbin/nologin "$SERVICE_USER"
     fi
-    if [ -f "$ROOT/current/signing.key" ]; then
-        chown "$SERVICE_USER:" "$ROOT/current/signing.key"
-        chmod 600 "$ROOT/current/signing.key"
-    fi
+    for key in "$ROOT/current/signing.key" "$ROOT"/current/pki/*.key; do
+        if [ -f "$key" ]; then
+            chown "$SERVICE_USER:" "$key"
+            chmod 600 "$key"
+        fi
+    done
     install -m 644 "$ROOT/current/$SERVICE" "$UNIT_DIR/$SERVICE.new"
     mv -f "$UNIT_DIR/$SERVICE.new" "$UNIT_DIR/$SERVICE"
     systemctl daemon-reload
@@ -268,7 +272,11 @@ build_release() {  # in releases/RELEASE itself (the paths compiled into the .py
     cp "$FROM/companion.toml" "$dest/"
     sed -e "s#/opt/triswarm#$ROOT#g" -e "s#^User=triswarm\$#User=$SERVICE_USER#" \
         -e "s#^Group=triswarm\$#Group=$SERVICE_USER#" "$FROM/$SERVICE" > "$dest/$SERVICE"
-    if [ -d "$FROM/files" ]; then cp -R "$FROM/files/." "$dest/"; fi
+    if [ -d "$FROM/files" ]; then
+        # a certificate's key (pki/agent-<i>.key) is 0600 before it is copied, and so from the start
+        find "$FROM/files" -type f -name '*.key' -exec chmod 600 {} +
+        cp -R "$FROM/files/." "$dest/"
+    fi
     if [ -f "$FROM/signing.key" ]; then
         (umask 077 && cp "$FROM/signing.key" "$dest/signing.key")
         chmod 600 "$dest/signing.key"

@@ -23,6 +23,7 @@ identity and ``-o`` options. Targets are deployed in parallel (threads), one pro
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import secrets
@@ -147,6 +148,8 @@ class Target:
     signing_key: Path | None = None
     generate_signing_key: bool = False
     ssh_options: tuple[str, ...] = ()
+    pki: Path | None = None           # the folder of `triswarm pki init`: ship this drone's certificate
+    zenoh_router: str | None = None   # with pki: connect to this router only (HOST[:PORT], one of pki init's)
 
     @property
     def label(self) -> str:
@@ -154,7 +157,7 @@ class Target:
 
 
 INVENTORY_KEYS = {"host", "user", "drone_id", "port", "identity", "config", "root", "python", "system_site_packages",
-                  "no_deps", "sudo", "signing_key", "generate_signing_key", "ssh_options"}
+                  "no_deps", "sudo", "signing_key", "generate_signing_key", "ssh_options", "pki", "zenoh_router"}
 
 
 def load_inventory(path: Path, base: Target) -> list[Target]:
@@ -229,7 +232,8 @@ def _target_from(d: dict, base: Target, here: Path, where: str) -> Target:
                no_deps=typed("no_deps", bool, base.no_deps), sudo=typed("sudo", bool, base.sudo),
                signing_key=path("signing_key", base.signing_key),
                generate_signing_key=typed("generate_signing_key", bool, base.generate_signing_key),
-               ssh_options=tuple(opts))
+               ssh_options=tuple(opts), pki=path("pki", base.pki),
+               zenoh_router=typed("zenoh_router", str, base.zenoh_router))
     validate_target(t)
     return t
 
@@ -247,6 +251,10 @@ def validate_target(t: Target) -> None:
         raise DeployError(f"--identity {t.identity}: no such file")
     if t.config is not None and not t.config.is_file():
         raise DeployError(f"--config {t.config}: no such file")
+    if t.pki is not None and not t.pki.is_dir():
+        raise DeployError(f"--pki {t.pki}: no such folder (triswarm pki init --out {t.pki} makes it)")
+    if t.zenoh_router is not None and t.pki is None:
+        raise DeployError("--zenoh-router needs --pki (it picks one of the routers of pki init's configurations)")
     for o in t.ssh_options:
         if "=" not in o:
             raise DeployError(f"--ssh-option {o!r}: expected KEY=VALUE (an ssh -o option)")
@@ -330,7 +338,9 @@ def make_release(target: Target, wheel: Wheel, key: bytes | None, key_pending: b
         files["signing.key"] = local.read_bytes()
         data["signing_key"] = "signing.key"
     ship(data, "plan", "plan")
-    if isinstance(data.get("zenoh"), dict):
+    if target.pki is not None:
+        data["zenoh"] = {"config": f"pki/{ship_pki(target, files)}"}
+    elif isinstance(data.get("zenoh"), dict):
         ship(data["zenoh"], "config", "zenoh.config")
     header = (f"# drone {target.drone_id}: written by triswarm deploy from {config_path.name}; relative paths are "
               f"relative to this file.\n")
@@ -342,6 +352,38 @@ def make_release(target: Target, wheel: Wheel, key: bytes | None, key_pending: b
     if key_pending:
         h.update(b"\0signing.key\0(to be generated)")
     return Release(f"{wheel.version}-{h.hexdigest()[:12]}", wheel, files, key_pending)
+
+
+def ship_pki(target: Target, files: dict[str, bytes]) -> str:
+    """Add this drone's part of ``pki init``'s output to ``files`` (the CA's certificate, the agent's
+    certificate and key, its Zenoh client configuration with the paths they will have on the target:
+    ``<root>/current/pki/``) and return the configuration's name. Nothing else leaves: not the CA's
+    key, not another agent's."""
+    from triswarm.gcs import pki
+
+    d, name = target.pki, f"agent-{target.drone_id}"
+    needed = [d / "ca.pem", d / f"{name}.pem", d / f"{name}.key", d / "zenoh" / f"{name}.json5"]
+    missing = [p for p in needed if not p.is_file()]
+    if missing:
+        raise DeployError(f"--pki {d}: no {missing[0].relative_to(d)} (triswarm pki init --out {d} --drones "
+                          f"{target.drone_id} or more makes it)")
+    try:
+        config = pki.read_config(needed[3])
+        tls = config["transport"]["link"]["tls"]
+    except (ValueError, KeyError, TypeError):
+        raise DeployError(f"{needed[3]}: not a configuration of triswarm pki init") from None
+    on_target = f"{target.root.rstrip('/')}/current/pki"
+    tls |= {"root_ca_certificate": f"{on_target}/ca.pem", "connect_certificate": f"{on_target}/{name}.pem",
+            "connect_private_key": f"{on_target}/{name}.key"}
+    if target.zenoh_router is not None:
+        try:
+            config["connect"]["endpoints"] = [pki.parse_router(target.zenoh_router).endpoint]
+        except pki.PkiError as exc:
+            raise DeployError(f"zenoh_router: {exc}") from None
+    for p in needed[:3]:
+        files[f"files/pki/{p.name}"] = p.read_bytes()
+    files[f"files/pki/{name}.json5"] = (json.dumps(config, indent=2) + "\n").encode()
+    return f"{name}.json5"
 
 
 # -- the remote side ----------------------------------------------------------------------------------
@@ -520,7 +562,7 @@ def deploy_target(t: Target, release: Release, *, dry_run: bool, rollback: bool,
             p = local / name
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_bytes(data)
-            if name == "signing.key":
+            if name.endswith(".key"):   # the signing key, a certificate's key
                 p.chmod(0o600)
         shutil.copy2(t_bootstrap(), local / "bootstrap.sh")
         shutil.copy2(release.wheel.path, local / release.wheel.path.name)

@@ -52,6 +52,10 @@ def deploy(
                                                            "with host, drone_id, user, port, config, ...).")] = None,
     wheel: Annotated[Optional[Path], typer.Option(help="Deploy this wheel instead of building one from the checkout.")] = None,
     signing_key: Annotated[Optional[Path], typer.Option(help="MAVLink signing key to ship (mode 0600 on the target).")] = None,
+    pki: Annotated[Optional[Path], typer.Option(help="The folder of `triswarm pki init`: ship the drone's certificate, key "
+                                                     "(0600), the CA's certificate and its Zenoh mTLS configuration.")] = None,
+    zenoh_router: Annotated[Optional[str], typer.Option(help="With --pki: connect to this router only, HOST[:PORT] "
+                                                              "(the drone's own host's, in a swarm over several hosts).")] = None,
     venv_python: Annotated[Optional[str], typer.Option(help="Interpreter on the target that creates <root>/venv "
                                                             "(default python3; >= 3.11).")] = None,
     system_site_packages: Annotated[bool, typer.Option(help="Create <root>/venv with --system-site-packages (e.g. "
@@ -74,7 +78,7 @@ def deploy(
             raise DeployError("--rollback takes no --wheel: it switches back to the release already on the target")
         base = dict(config=config, port=ssh_port, identity=identity, root=root, python=venv_python,
                     system_site_packages=system_site_packages, no_deps=no_deps, sudo=sudo, signing_key=signing_key,
-                    ssh_options=tuple(ssh_option or ()))
+                    ssh_options=tuple(ssh_option or ()), pki=pki, zenoh_router=zenoh_router)
         if inventory is not None:
             targets = load_inventory(inventory, Target(host="-", drone_id=1, **base))
         else:

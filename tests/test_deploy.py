@@ -365,6 +365,51 @@ root = "{roots[1]}"
     assert current(roots[0]) != current(roots[1])   # a drone's configuration is part of its release
 
 
+def test_pki_ships_the_drones_certificate_and_the_check_opens_mtls(sshd, wheels, tmp_path):
+    """`--pki`: the drone gets the CA's certificate, its own certificate and key (0600) and its mTLS
+    client configuration with the paths they have on the target, and nothing else of the PKI; the
+    check on the target opens a session to a real router with them (mTLS handshake)."""
+    import json
+
+    import zenoh
+
+    from triswarm.gcs import pki
+
+    port = _free_port()
+    d = tmp_path / "pki"
+    pki.init(d, "deploy-test", 3, [f"127.0.0.1:{port}", "gs.example.org"], listen_host="127.0.0.1")
+    router_cfg = zenoh.Config.from_file(str(d / "zenoh" / "router-127.0.0.1.json5"))
+    router_cfg.insert_json5("connect/endpoints", "[]")   # gs.example.org is not there
+    router = zenoh.open(router_cfg)
+    try:
+        root = prepared_root(tmp_path)
+        r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "2", "--root", str(root),
+                       "--config", str(drone_config(tmp_path / "cfg")), "--wheel", str(wheels.base),
+                       "--venv-python", sys.executable, "--no-deps", "--source", str(wheels.source),
+                       "--pki", str(d), "--zenoh-router", f"127.0.0.1:{port}")
+    finally:
+        router.close()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "check: ok    zenoh: session opened" in r.stdout, r.stdout
+    rel = root / "current"
+    assert sorted(p.name for p in (rel / "pki").iterdir()) == ["agent-2.json5", "agent-2.key", "agent-2.pem", "ca.pem"]
+    for name in ("ca.pem", "agent-2.pem", "agent-2.key"):
+        assert (rel / "pki" / name).read_bytes() == (d / name).read_bytes(), name
+    assert stat.S_IMODE((rel / "pki" / "agent-2.key").stat().st_mode) == 0o600
+    assert tomllib.loads((rel / "companion.toml").read_text())["zenoh"] == {"config": "pki/agent-2.json5"}
+    shipped = json.loads((rel / "pki" / "agent-2.json5").read_text())
+    tls = shipped["transport"]["link"]["tls"]
+    assert (tls["root_ca_certificate"], tls["connect_certificate"], tls["connect_private_key"]) == \
+        tuple(f"{root}/current/pki/{n}" for n in ("ca.pem", "agent-2.pem", "agent-2.key"))
+    assert shipped["connect"]["endpoints"] == [f"tls/127.0.0.1:{port}"]   # its router only, not gs.example.org
+
+    # a drone that pki init made no certificate for: refused before anything is copied
+    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "4", "--root", str(tmp_path / "other"),
+                   "--config", str(drone_config(tmp_path / "cfg")), "--wheel", str(wheels.base), "--pki", str(d))
+    assert r.returncode == 2 and "no agent-4.pem" in r.stderr and "--drones 4 or more" in r.stderr, r.stdout + r.stderr
+    assert not (tmp_path / "other").exists()
+
+
 def test_unreachable_host_fails_with_the_reason(sshd, wheels, tmp_path):
     r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "1", "--root", str(tmp_path / "r"),
                    "--wheel", str(wheels.base), "--config", str(drone_config(tmp_path / "cfg")),
