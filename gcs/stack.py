@@ -121,17 +121,7 @@ class Stack:
 
     def __exit__(self, *exc) -> None:
         companions = [p for name, p in self.procs.items() if name != "sitl"]
-        for group in (companions, [self.procs.get("sitl")]):
-            group = [p for p in group if p is not None]
-            for p in group:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGTERM)
-            for p in group:
-                try:
-                    p.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait(timeout=5)
+        stop_in_turn([companions, [p for p in [self.procs.get("sitl")] if p is not None]])
         for log in self._logs:
             log.close()
 
@@ -140,3 +130,18 @@ class Stack:
 
     def log(self, name: str) -> str:
         return (self.workdir / "logs" / f"{name}.log").read_text()
+
+
+def stop_in_turn(groups: list[list[subprocess.Popen]], timeout_s: float = 15.0) -> None:
+    """Stop each group of processes in turn: SIGTERM to all of it, then wait for each (SIGKILL after
+    ``timeout_s``). Companions go before their flight controllers: they write their stats on SIGTERM."""
+    for group in groups:
+        for p in group:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in group:
+            try:
+                p.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=5)

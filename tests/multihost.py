@@ -3,13 +3,10 @@ namespace per host, joined to the bridge by a veth pair, each with an address of
 process a test starts in a host runs under ``ip netns exec``; on exit every process left in a
 namespace is killed and every interface and namespace is deleted.
 
-Run as a script it starts what a host runs besides the companions:
+Run as a script it is a host's Zenoh router, until SIGTERM (what ``zenohd -c CONFIG`` would do,
+without installing zenohd):
 
-    python tests/multihost.py router CONFIG.json5     # a Zenoh router until SIGTERM
-    python tests/multihost.py sitl -n 2 --first-id 3 --bind 10.77.0.12 --manifest M.json [--stats S.json]
-
-(``sitl`` is ``triswarm sitl up`` with ``--first-id``; it uses the CLI itself when the CLI has the
-option.)
+    python tests/multihost.py router CONFIG.json5
 """
 
 from __future__ import annotations
@@ -125,81 +122,12 @@ def kill_namespace(name: str) -> None:
     _run("ip", "netns", "del", name, check=False)
 
 
-def router_config(peers: list[str], port: int = 7447) -> str:
-    """A router like deploy/zenoh/router.json5, also connecting to the other routers over TCP
-    (retrying every 0.2-1 s, so a link back up is used within about a second). A router whose
-    link to another is stuck closes it after 1 s instead of Zenoh's default 5 s
-    (``wait_before_close``): meanwhile the router forwards nothing, not even between its own clients."""
-    import json
-
-    endpoints = [f"tcp/{ip}:{port}" for ip in peers]
-    return f"""// written by tests/test_stack_multihost.py: the router of one host, meshed with the others
-{{
-  mode: "router",
-  listen: {{ endpoints: ["tcp/0.0.0.0:{port}", "udp/0.0.0.0:{port}"] }},
-  connect: {{
-    endpoints: {json.dumps(endpoints)},
-    timeout_ms: {{ router: -1 }},
-    exit_on_failure: {{ router: false }},
-    retry: {{ period_init_ms: 200, period_max_ms: 1000, period_increase_factor: 2 }},
-  }},
-  scouting: {{ multicast: {{ enabled: false }} }},
-  transport: {{
-    unicast: {{ max_links: 2 }},
-    link: {{ tx: {{ lease: 1000, keep_alive: 4,
-                   queue: {{ congestion_control: {{ drop: {{ wait_before_drop: 100 }}, block: {{ wait_before_close: 1000000 }} }} }} }} }},
-  }},
-}}
-"""
-
-
-def client_config(router_ip: str, port: int = 7447) -> str:
-    """A companion in client mode of its host's router, like deploy/zenoh/companion-client.json5."""
-    return f"""// written by tests/test_stack_multihost.py: a companion, client of its host's router
-{{
-  mode: "client",
-  connect: {{ endpoints: ["tcp/{router_ip}:{port}", "udp/{router_ip}:{port}"] }},
-  scouting: {{ multicast: {{ enabled: false }} }},
-  transport: {{
-    unicast: {{ max_links: 2 }},
-    link: {{ tx: {{ lease: 1000, keep_alive: 4 }} }},
-  }},
-}}
-"""
-
-
-def cli_has_first_id() -> bool:
-    import inspect
-
-    from triswarm.gcs.cli import sitl_up
-
-    return "first_id" in inspect.signature(sitl_up).parameters
-
-
-def sitl_command(n: int, first_id: int, bind: str, manifest: Path, stats: Path) -> list[str]:
-    """``triswarm sitl up -n N --first-id K``: the CLI if it has the option, else this file's stand-in."""
-    args = ["-n", str(n), "--first-id", str(first_id), "--bind", bind, "--base-port", "0", "--manifest", str(manifest),
-            "--stats", str(stats)]
-    if cli_has_first_id():
-        return [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", *args, "--quiet"]
-    return [sys.executable, str(Path(__file__).resolve()), "sitl", *args]
-
-
-def _sitl_main(a: argparse.Namespace) -> None:
-    import asyncio
-
-    from triswarm.companion.state import write_json_atomically
-    from triswarm.sitl.launcher import SitlOptions, run_sitl
-
-    opts = SitlOptions(n=a.n, bind=a.bind, base_port=a.base_port, first_id=a.first_id)
-    result = asyncio.run(run_sitl(opts, on_ready=lambda m: write_json_atomically(a.manifest, m)))
-    if a.stats is not None:
-        write_json_atomically(a.stats, result)
-
-
 def _router_main(a: argparse.Namespace) -> None:
     import threading
 
+    # Zenoh's default runtime, not the companion's single worker that a test's environment passes on
+    # (triswarm.companion.bus sets it on import): a router with one worker stops whenever it blocks
+    os.environ.pop("ZENOH_RUNTIME", None)
     import zenoh
 
     stop = threading.Event()
@@ -213,21 +141,17 @@ def _router_main(a: argparse.Namespace) -> None:
     session.close()
 
 
+def router_command(config: Path) -> list[str]:
+    return [sys.executable, str(Path(__file__).resolve()), "router", str(config)]
+
+
 def main() -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="what", required=True)
     r = sub.add_parser("router")
     r.add_argument("config", type=Path)
-    s = sub.add_parser("sitl")
-    s.add_argument("-n", type=int, required=True)
-    s.add_argument("--first-id", type=int, default=1)
-    s.add_argument("--bind", default="127.0.0.1")
-    s.add_argument("--base-port", type=int, default=0)
-    s.add_argument("--manifest", type=Path, required=True)
-    s.add_argument("--stats", type=Path)
     a = ap.parse_args()
-    {"router": _router_main, "sitl": _sitl_main}[a.what](a)
+    _router_main(a)
 
 
 if __name__ == "__main__":
