@@ -72,7 +72,7 @@ def problem() -> str | None:
 
 def client_config(generated: Path, router: pki.Router, out: Path) -> Path:
     """A client configuration of ``pki init``, connecting to one router only (its host's)."""
-    cfg = json.loads("\n".join(line for line in generated.read_text().splitlines() if not line.startswith("//")))
+    cfg = pki.read_config(generated)
     cfg["connect"]["endpoints"] = [router.endpoint]
     out.write_text(json.dumps(cfg, indent=2))
     return out
