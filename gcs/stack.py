@@ -132,13 +132,13 @@ class Stack:
         return (self.workdir / "logs" / f"{name}.log").read_text()
 
 
-def stop_in_turn(groups: list[list[subprocess.Popen]], timeout_s: float = 15.0) -> None:
-    """Stop each group of processes in turn: SIGTERM to all of it, then wait for each (SIGKILL after
+def stop_in_turn(groups: list[list[subprocess.Popen]], timeout_s: float = 15.0, sig: int = signal.SIGTERM) -> None:
+    """Stop each group of processes in turn: ``sig`` to all of it, then wait for each (SIGKILL after
     ``timeout_s``). Companions go before their flight controllers: they write their stats on SIGTERM."""
     for group in groups:
         for p in group:
             if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
+                p.send_signal(sig)
         for p in group:
             try:
                 p.wait(timeout=timeout_s)

@@ -20,11 +20,11 @@ class NetNamespace:
         self.name = name
 
     @staticmethod
-    def problem() -> str | None:
-        """Why this machine cannot run the namespace tests (None if it can)."""
+    def problem(tools: tuple[str, ...] = ("ip", "iptables")) -> str | None:
+        """Why this machine cannot run the namespace tests that need ``tools`` (None if it can)."""
         if os.geteuid() != 0:
-            return "network namespaces and iptables need root"
-        for tool in ("ip", "iptables"):
+            return f"network namespaces{' and iptables' if 'iptables' in tools else ''} need root"
+        for tool in tools:
             if shutil.which(tool) is None:
                 return f"{tool} is not installed (Debian: apt-get install iproute2 iptables)"
         return None

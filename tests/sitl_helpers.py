@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import contextlib
 import json
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from pymavlink import mavutil
+
+from triswarm.gcs.stack import stop_in_turn
 
 _OPEN: list = []  # connections made while a SITL runs; closed when it stops
 
@@ -37,13 +38,7 @@ def sitl_process(tmp_path: Path, n: int = 1, *extra: str, startup_timeout_s: flo
     finally:
         while _OPEN:
             _OPEN.pop().close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=5)
+        stop_in_turn([[proc]])
         out.close()
         err.close()
 

@@ -31,6 +31,7 @@ import pytest
 
 from triswarm.companion.config import ConfigError, load_config, resolve_options, run_checks
 from triswarm.gcs import deploy as dp
+from triswarm.gcs.stack import stop_in_turn
 
 REPO = Path(__file__).resolve().parents[1]
 SSHD = Path("/usr/sbin/sshd")
@@ -113,12 +114,7 @@ LogLevel VERBOSE
     try:
         yield SimpleNamespace(port=port, key=d / "user_key", known_hosts=d / "known_hosts", user=user, dir=d)
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+        stop_in_turn([[proc]], timeout_s=10)
         log.close()
 
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -44,7 +43,9 @@ from triswarm.gcs.stack import stop_in_turn
 from triswarm.protocol import metrics
 
 from .conftest import PAPER_PLAN_FILE
-from .multihost import Hosts, router_command, subnet_in_use
+from . import zenoh_router
+from .multihost import Hosts, subnet_in_use
+from .netem import NetNamespace
 from .stack_helpers import judge
 from .test_monitor import table_rows, triswarm
 
@@ -64,14 +65,6 @@ plan's 200 Hz, six companions, three SITLs and three routers need more than two 
 ~170 CPU-seconds in an 85 s run), 40-50 % of the ticks miss their deadline, and the worst attitude
 error reaches the 0.02 rad bound. At 100 Hz the same bounds hold with margin (0.015 m, 0.005 rad)."""
 POS_BOUND, ATT_BOUND = 0.10, 0.02
-
-
-def problem() -> str | None:
-    if os.geteuid() != 0:
-        return "network namespaces, veths and a bridge need root"
-    if shutil.which("ip") is None:
-        return "ip is not installed (Debian: apt-get install iproute2)"
-    return None
 
 
 def client_config(generated: Path, router: pki.Router, out: Path) -> Path:
@@ -101,13 +94,7 @@ class MonitorTables:
                 self.tables[-1][1].append(line.rstrip("\n"))
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)  # the monitor stops on Ctrl-C
-        try:
-            self.proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(timeout=5)
+        stop_in_turn([[self.proc]], timeout_s=10, sig=signal.SIGINT)  # the monitor stops on Ctrl-C
         self._thread.join(timeout=5)
         self.proc.stdout.close()
 
@@ -177,7 +164,7 @@ def speed(rec, start: float, drone: int, t_from: float, t_to: float) -> float:
 
 
 def test_three_hosts_link_cut_and_rejoin(tmp_path):
-    why = problem()
+    why = NetNamespace.problem(tools=("ip",))
     if why:
         pytest.skip(why)
     prefix = next((f"10.77.{k}" for k in range(0, 250) if not subnet_in_use(f"10.77.{k}")), None)
@@ -217,7 +204,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             generated = tmp_path / "pki" / "zenoh"
             # each host: its router (QUIC to the routers of the hosts after it), its SITL on its own address
             for h in HOSTS:
-                spawn(net, h, f"router-{h}", router_command(generated / f"{routers[h].name}.json5"))
+                spawn(net, h, f"router-{h}", zenoh_router.command(generated / f"{routers[h].name}.json5"))
                 spawn(net, h, f"sitl-{h}", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(len(HOSTS[h])),
                                             "--first-id", str(HOSTS[h][0]), "--bind", net.address[h], "--base-port", "0",
                                             "--manifest", str(tmp_path / f"manifest-{h}.json"),
