@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import control
 import numpy as np
 
 from .airframe import ParameterError
@@ -177,6 +176,10 @@ def augmented_model(A_r: np.ndarray, B_r: np.ndarray, C_r: np.ndarray) -> tuple[
 
 def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
     """Algorithm 1's gains for a swarm flying ``schedule``. Refuses a topology without Assumption 1."""
+    # Imported here: python-control brings scipy.signal and matplotlib.pyplot (about 1 s), which a
+    # command that never designs (sitl up, monitor, --help) should not wait for.
+    import control
+
     schedule.check()
     A, B, C = rfl.A_r, rfl.B_r, rfl.C_r
     K, P, _ = control.lqr(A, B, weights.Q, weights.R)           # (89)-(90)

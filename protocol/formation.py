@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from .airframe import ParameterError
 
@@ -152,8 +151,8 @@ class KeyframeFormation(Formation):
     times_s: np.ndarray
     positions_m: np.ndarray
     attitudes_rad: np.ndarray
-    _p: CubicSpline = field(init=False, repr=False, compare=False)
-    _eta: CubicSpline = field(init=False, repr=False, compare=False)
+    _p: "CubicSpline" = field(init=False, repr=False, compare=False)  # noqa: F821 (imported when needed)
+    _eta: "CubicSpline" = field(init=False, repr=False, compare=False)  # noqa: F821
 
     def __post_init__(self) -> None:
         t = np.array(self.times_s, dtype=float)
@@ -171,6 +170,8 @@ class KeyframeFormation(Formation):
             raise ParameterError("keyframe positions and attitudes must be finite numbers")
         for name, val in (("times_s", t), ("positions_m", p), ("attitudes_rad", a)):
             object.__setattr__(self, name, val)
+        from scipy.interpolate import CubicSpline  # (a third of a second to import: only for keyframes)
+
         object.__setattr__(self, "_p", CubicSpline(t, p, axis=0, bc_type="clamped"))
         object.__setattr__(self, "_eta", CubicSpline(t, a, axis=0, bc_type="clamped"))
 
