@@ -30,12 +30,13 @@ from functools import cached_property
 import numpy as np
 
 from . import graph as graph_mod
-from .airframe import Airframe, ParameterError
+from .airframe import RPM_TO_RAD_S, Airframe, ParameterError
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
                         RotatingPolygon)
 from .graph import GraphError, Schedule, Topology
-from .rfl import RFL
+from .model import actuator_inverse
+from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
 
 
 class PlanError(ValueError):
@@ -109,14 +110,35 @@ class Plan:
 
     def check(self, horizon_s: float = 60.0, step_s: float = 0.1) -> Design:
         """Algorithm 1's checks: (76) for every drone over the horizon, Assumption 1 for every
-        topology, (91) and the Hurwitz conditions (77). Returns the design."""
+        topology, (91) and the Hurwitz conditions (77); then that the formation asks no more of
+        the airframe than its motors and servos give (``actuator_demand``). Returns the design."""
         d = self.design
         times = np.arange(0.0, horizon_s + 1e-9, step_s)
         try:
             check_feasibility(d.A_r, d.B_bar, self.formation, times, source=f"{self.source}: formation")
         except FormationError as exc:
             raise PlanError(str(exc)) from None
+        problem = self.actuator_demand(times).problem(self.airframe)
+        if problem is not None:
+            raise PlanError(f"{self.source}: formation cannot be flown: {problem}")
         return d
+
+    def actuator_demand(self, times_s: np.ndarray) -> "ActuatorDemand":
+        """What flying the formation exactly asks of each drone's rotors at the given plan times:
+        the RFL (49) at x_r = x0 + h_i(t) with the input that keeps it there,
+        v = B_tilde (x_r_dot - A_r x_r) (exact when (76) holds), through Remark 1 to rotor speeds
+        and servo angles. The feedback needs room on top of this; the entry and the rejoins are
+        shaped by the companion and not included."""
+        times = np.atleast_1d(np.asarray(times_s, dtype=float))
+        refs = [self.reference(float(t)) for t in times]
+        x_r = np.stack([r[0] for r in refs])  # (T, N, 12)
+        x_r_dot = np.stack([r[1] for r in refs])
+        A_r, B_r = self.rfl.A_r, self.rfl.B_r
+        v = (x_r_dot - x_r @ A_r.T) @ np.linalg.pinv(B_r).T
+        u, _ = self.rfl.control_xr(x_r, v)
+        omega, alpha = actuator_inverse(u)  # (T, N, 3) each
+        return ActuatorDemand(times, omega.min(axis=2), omega.max(axis=2), np.abs(alpha).max(axis=2),
+                              np.abs(x_r[..., XR_EULER][..., 1]))
 
     def entry_formation(self, start_position_m: np.ndarray, t0_s: float = 0.0, target: Formation | None = None) -> Formation:
         """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0:
@@ -145,6 +167,37 @@ class Plan:
         if isinstance(spec["formation"].get("attitude_rad"), list) and np.ndim(spec["formation"]["attitude_rad"]) == 2:
             raise PlanError(f"{self.source}: per-drone attitudes cannot be resized to {n_agents} drones")
         return plan_from_dict(spec, self.source)
+
+
+@dataclass(frozen=True)
+class ActuatorDemand:
+    """At each plan time checked (T,) and for each drone: its slowest and fastest rotor [rad/s]
+    and the largest servo angle of its rotors from the untilted position [rad], (T, N) each."""
+
+    times_s: np.ndarray
+    omega_min_rad_s: np.ndarray
+    omega_max_rad_s: np.ndarray
+    tilt_max_rad: np.ndarray
+    pitch_rad: np.ndarray
+    """|pitch| of the reference: the RFL holds for |pitch| < 90 deg, the controller to MAX_PITCH_RAD."""
+
+    def problem(self, af: Airframe) -> str | None:
+        """One sentence on the first drone whose reference pitches past the controller's limit or
+        whose rotors pass the motor limit or the servo range (its peak, and when it first passes);
+        None when every drone stays inside all three."""
+        deg = 180.0 / math.pi
+        limits = ((self.pitch_rad, MAX_PITCH_RAD, "a pitch of {:.1f} deg", deg, "the controller's limit ({:.1f} deg)"),
+                  (self.omega_max_rad_s, af.max_rotor_speed_rad_s, "a rotor at {:.0f} RPM", 1.0 / RPM_TO_RAD_S,
+                   "the motor limit ({:.0f} RPM)"),
+                  (self.tilt_max_rad, af.servo_limit_rad, "a rotor tilted {:.1f} deg", deg,
+                   "the servo range (+-{:.1f} deg)"))
+        for i in range(self.tilt_max_rad.shape[1]):
+            for series, limit, need, scale, what in limits:
+                over = np.flatnonzero(~(series[:, i] <= limit))  # (NaN counts as over)
+                if over.size:
+                    return (f"drone {i + 1} needs {need.format(series[:, i].max() * scale)}, past "
+                            f"{what.format(limit * scale)} from t = {self.times_s[over[0]]:g} s")
+        return None
 
 
 # -- parsing -----------------------------------------------------------------------------------

@@ -82,6 +82,52 @@ def test_infeasible_formation_is_refused_naming_the_drone(paper_spec):
         plan.check(horizon_s=5)
 
 
+def test_actuator_demand_of_the_case_study_is_the_erratas(paper_plan):
+    """errata: on the exact reference (x = x0 + h_i(t), v = gamma_i) some rotor of every drone
+    tilts to about 90-91 deg once per revolution, and rotor speeds range from about 124 to 486 rad/s."""
+    revolution = 2.0 * np.pi  # [s] at 1 rad/s
+    d = paper_plan.actuator_demand(np.arange(30.0, 30.0 + 2.0 * revolution, 0.01))
+    assert d.omega_min_rad_s.min() == pytest.approx(124.0, abs=1.0)
+    assert d.omega_max_rad_s.max() == pytest.approx(486.0, abs=1.0)
+    for half in (d.tilt_max_rad[: d.times_s.size // 2], d.tilt_max_rad[d.times_s.size // 2:]):
+        peak_deg = np.degrees(half.max(axis=0))  # each revolution, each drone
+        assert np.all((peak_deg > 90.0) & (peak_deg < 91.5)), peak_deg
+
+
+def test_actuator_demand_of_a_still_level_formation_is_hover(paper_spec):
+    """errata: hovering level, each rotor turns at 288.38 rad/s tilted 3.637 deg."""
+    spec = copy.deepcopy(paper_spec)
+    spec["formation"] = {"type": "constant", "offsets": [[0.0] * 9 + [3.0 * i, 0.0, 10.0] for i in range(6)]}
+    d = plan_from_dict(spec, "still.toml").actuator_demand(np.arange(0.0, 2.0, 0.5))
+    for series in (d.omega_min_rad_s, d.omega_max_rad_s):
+        assert series == pytest.approx(np.full((4, 6), 288.38), abs=0.01)
+    assert np.degrees(d.tilt_max_rad) == pytest.approx(np.full((4, 6), 3.637), abs=0.001)
+
+
+@pytest.mark.parametrize("field,limit,refused", [
+    ("max_rotor_speed_rad_s", 487.0, None),  # the case study peaks at 486.4 rad/s (4645 RPM)
+    ("max_rotor_speed_rad_s", 485.0, r"drone 1 needs a rotor at 4645 RPM, past the motor limit \(4631 RPM\) from t = "),
+    ("servo_limit_rad", np.radians(91.5), None),  # its drones tilt up to 90.2 and 91.2 deg
+    ("servo_limit_rad", np.radians(90.5), r"drone 2 needs a rotor tilted 91.2 deg, past the servo range \(\+-90.5 deg\)"),
+])
+def test_check_refuses_a_formation_past_the_motor_limit_or_the_servo_range(paper_spec, field, limit, refused):
+    plan = plan_from_dict(spec_with(paper_spec, ("airframe", field), float(limit)), "my.toml")
+    if refused is None:
+        plan.check(horizon_s=20)
+    else:
+        with pytest.raises(PlanError, match="my.toml: formation cannot be flown: " + refused):
+            plan.check(horizon_s=20)
+
+
+def test_check_refuses_a_formation_pitched_past_the_controllers_limit(paper_spec):
+    """The RFL's M(x) is singular at pitch 90 deg (errata); the controller stops at 1.4 rad."""
+    spec = copy.deepcopy(paper_spec)
+    spec["formation"]["attitude_rad"] = [[0.0, 0.3, 0.0]] * 5 + [[0.0, -1.45, 0.0]]
+    with pytest.raises(PlanError, match=r"my.toml: formation cannot be flown: drone 6 needs a pitch of 83.1 deg, "
+                                        r"past the controller's limit \(80.2 deg\) from t = 0 s"):
+        plan_from_dict(spec, "my.toml").check(horizon_s=10)
+
+
 def test_keyframe_plan(paper_spec):
     spec = copy.deepcopy(paper_spec)
     spec["formation"] = {"type": "keyframes", "keyframes": [

@@ -72,6 +72,12 @@ def test_json_summary_has_the_eigenvalues_of_every_topology():
         got = np.array([e["re"] + 1j * e["im"] for e in eigs[name]])
         assert np.sort_complex(got) == pytest.approx(np.sort_complex(sorted_eigenvalues(M)), abs=1e-9)
     assert all(v < 0 for v in summary["design"]["stability_margins"].values())
+    # errata: on the exact reference the rotors run 124-486 rad/s and tilt up to about 90-91 deg
+    for row in summary["actuators"]:
+        lo, hi = np.array(row["rotor_speed_rpm"]) * 2.0 * np.pi / 60.0
+        assert lo == pytest.approx(124.0, abs=1.5) and hi == pytest.approx(486.0, abs=1.0)
+        assert 90.0 < row["tilt_max_deg"] < 91.5
+        assert row["motor_limit_rpm"] == 12000.0 and row["servo_range_deg"] == 120.0
 
 
 POLYGON = 'radius_m = 10.0\naltitude_m = 20.0\nrate_rad_s = 1.0\nattitude_rad = "paper-alternating"\n'
@@ -93,8 +99,11 @@ OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}
     ([('type = "rotating-polygon"\n', 'type = "keyframes"\nkeyframes = [{t_s = 5.0, position_m = [0, 0, 10]}, '
                                       '{t_s = 5.0, position_m = [0, 0, 12]}]\n'), (POLYGON, "")],
      "formation.keyframes[1].t_s must be later than the keyframe before it", None),
+    ([("[leader]", "[airframe]\nservo_limit_rad = 1.55\n\n[leader]")],
+     "formation cannot be flown: drone 1 needs a rotor tilted 90.2 deg, past the servo range "
+     "(+-88.8 deg)", "drone 1"),
 ], ids=["missing-field", "ragged-array", "short-array", "unknown-type", "negative-period", "no-spanning-tree",
-        "infeasible-76", "keyframes-out-of-order"])
+        "infeasible-76", "keyframes-out-of-order", "servo-range"])
 def test_bad_plan_ends_with_one_sentence_naming_file_drone_and_field(tmp_path, replace, field, drone):
     path = paper_plan_variant(tmp_path, replace)
     r = plan_check(path)
