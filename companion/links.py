@@ -25,6 +25,11 @@ from pymavlink import mavutil
 from triswarm.protocol.mavlink import SIGNATURE_REFUSED, new_codec, reset_parser
 
 MAX_READS_PER_WAKEUP = 64
+CLIENT_TIMEOUT_S = 10.0
+"""A ``udpin`` link sends to every address that has spoken to it in this long (ground stations send
+a heartbeat every second; MAVLink calls a link lost after 5 s without one); when all are silent,
+to one of them. Without it every ground-station command line, on a new port each time, would
+stay a destination for the rest of the flight."""
 MAX_DATAGRAM = 65535
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python does not export it
 _TIMESPEC = struct.Struct("@qq")
@@ -34,8 +39,9 @@ _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
 class MavLink:
     """One MAVLink link. ``on_receive(link, messages, t_rx_unix_s)`` gets every parsed batch."""
 
-    def __init__(self, name: str, url: str, sysid: int, compid: int) -> None:
+    def __init__(self, name: str, url: str, sysid: int, compid: int, client_timeout_s: float = CLIENT_TIMEOUT_S) -> None:
         self.name, self.url = name, url
+        self.client_timeout_s = client_timeout_s
         self.codec = new_codec(sysid, compid)
         self.conn = None
         self.counters: Counter[str] = Counter()
@@ -47,7 +53,8 @@ class MavLink:
     def open(self, loop: asyncio.AbstractEventLoop, on_receive: Callable) -> None:
         try:
             self.conn = mavutil.mavlink_connection(self.url, source_system=self.codec.srcSystem,
-                                                   source_component=self.codec.srcComponent)
+                                                   source_component=self.codec.srcComponent,
+                                                   udp_timeout=self.client_timeout_s)
         except (OSError, ValueError) as exc:
             raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
         self._datagrams = isinstance(self.conn, mavutil.mavudp)

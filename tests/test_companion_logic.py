@@ -1,12 +1,16 @@
-"""Pure logic of the companion: MAVLink routing rules, loop-health statistics."""
+"""Pure logic of the companion: MAVLink routing rules, loop-health statistics; and whom a
+ground-station link sends to, over real loopback sockets."""
 
+import asyncio
 import math
+import socket
+import time
 
 import numpy as np
 import pytest
 
 from triswarm.companion.health import LoopHealth, Window
-from triswarm.companion.links import Router
+from triswarm.companion.links import MavLink, Router
 from triswarm.protocol.mavlink import mavlink, new_codec
 
 
@@ -69,6 +73,55 @@ def test_unknown_targets_are_not_forwarded(routed):
     assert not r.for_me(other_system)
     unheard_component = frame(mavlink.MAVLink_param_request_list_message(3, 100), 255, 190)
     assert r.destinations(gcs, unheard_component, [fc, gcs]) == []
+
+
+def test_a_ground_station_link_sends_to_every_station_heard_lately():
+    """Two ground stations on one udpin port both get what the companion sends; one that falls
+    silent for longer than the client timeout stops getting it, unless it is the only one."""
+    loop = asyncio.new_event_loop()
+    stations = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    link = MavLink("gcs", "udpin:127.0.0.1:0", 3, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER, client_timeout_s=0.5)
+    try:
+        link.open(loop, lambda *args: None)
+        port = link.conn.port.getsockname()[1]
+        heartbeat = mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3).pack(new_codec(255, 190))
+        for s in stations:
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(1.0)
+
+        def speak(station) -> None:
+            """A heartbeat from the station, read by the link (as the loop's reader would)."""
+            before = link.counters["rx"]
+            station.sendto(heartbeat, ("127.0.0.1", port))
+            deadline = time.monotonic() + 2.0
+            while link.counters["rx"] == before and time.monotonic() < deadline:
+                link._readable()
+            assert link.counters["rx"] == before + 1
+
+        def heard(station) -> bytes | None:
+            try:
+                return station.recv(1024)
+            except socket.timeout:
+                return None
+
+        speak(stations[0])
+        speak(stations[1])
+        link.write(b"to both")
+        assert [heard(s) for s in stations] == [b"to both", b"to both"]
+        time.sleep(0.6)
+        speak(stations[1])  # station 0 has been silent for 0.6 s
+        link.write(b"to the one heard")
+        assert heard(stations[1]) == b"to the one heard"
+        stations[0].settimeout(0.2)
+        assert heard(stations[0]) is None
+        time.sleep(0.6)  # now both are silent: one is kept
+        link.write(b"to the last")
+        assert heard(stations[1]) == b"to the last"
+    finally:
+        link.close()
+        loop.close()
+        for s in stations:
+            s.close()
 
 
 def test_window_percentiles_match_numpy_within_two_percent():

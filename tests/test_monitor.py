@@ -9,9 +9,11 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 import tomli_w
+from pymavlink import mavutil
 from rich.console import Console
 
 from triswarm.gcs.link import GroundLink, Seen
@@ -216,10 +218,24 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
     with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=8) as stack:
         with GroundLink(stack.endpoints()) as link:
             wait_for(lambda: flying(link, 1) and flying(link, 2), 40.0, "both drones in formation")
-        # the monitor is now the only ground station: a companion answers the last one that spoke
-        done = subprocess.run(triswarm("monitor", "--manifest", str(stack.swarm_manifest), "--once",
-                                       "--tlog", str(tmp_path / "monitor.tlog")),
-                              capture_output=True, text=True, timeout=30)
+            # Two ground stations on the same links at once (the monitor, and this link): each
+            # gets all of the forwarded telemetry (GCS_TLM_HZ, 20 Hz), not a share of it.
+            with link.subscribe(None, COMP_AUTOPILOT, "ATTITUDE") as attitudes:
+                t0 = time.time()
+                done = subprocess.run(triswarm("monitor", "--manifest", str(stack.swarm_manifest), "--once",
+                                               "--tlog", str(tmp_path / "monitor.tlog")),
+                                      capture_output=True, text=True, timeout=30)
+                t1 = time.time()
+                here = [m.get_srcSystem() for m in iter(lambda: attitudes.get(0.0), None)]
+    tlog = mavutil.mavlink_connection(str(tmp_path / "monitor.tlog"))
+    heard = [(m._timestamp, m.get_srcSystem()) for m in iter(lambda: tlog.recv_match(type="ATTITUDE"), None)]
+    tlog.close()
+    assert heard, done.stdout + done.stderr
+    start = heard[0][0]  # the monitor listens 1.5 s: count over its first second
+    there = [drone for t, drone in heard if t < start + 1.0]
+    for drone in (1, 2):
+        assert here.count(drone) >= 0.8 * 20.0 * (t1 - t0), (drone, here.count(drone), t1 - t0)
+        assert there.count(drone) >= 0.8 * 20.0 * 1.0, (drone, there.count(drone))
     assert done.returncode == 0, done.stdout + done.stderr
     drones = table_rows(done.stdout)
     assert sorted(drones) == ["1", "2"], done.stdout
