@@ -22,7 +22,9 @@ nothing, and let a ground station without the key (a monitor) be heard and read 
 other unsigned frame, and every frame with a wrong signature or a replayed timestamp, is dropped
 before routing (so it reaches neither this component nor the flight controller), counted in the
 link's counters by reason, and reported to the ground station once a second. Frames forwarded
-from the flight controller, whose link is not signed, reach the ground station as they came.
+from the flight controller, whose link is not signed, reach the ground station as they came. With
+a state folder, each ground-station stream's last timestamp is kept there (``signing.json``), so a
+frame taken before a restart is still a replay after it.
 """
 
 from __future__ import annotations
@@ -172,6 +174,7 @@ class Companion:
         self.agent = opts.agent
         self.signing_key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
         self._refusals_told: Counter[str] = Counter()
+        self._signing_kept: dict[str, int] = {}  # the signing streams as last saved
         self.store = StateStore(opts.state_dir)
         self.fc = FcState()
         self.health = LoopHealth(1.0 / opts.rate_hz)
@@ -392,6 +395,7 @@ class Companion:
         if self.signing_key is not None:
             setup_signing(self.gcs_link.codec, self.signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__,
                           self.gcs_link.counters)
+            self._restore_signing_streams()
         self.links = [self.fc_link, self.gcs_link]
         self.router = Router(self.agent, COMP_ONBOARD)
         self.plans = PlanServer(self._receive_plan, self._clear_plans, self._held_items, self._say)
@@ -417,9 +421,35 @@ class Companion:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            self._keep_signing_streams()
             if hasattr(self, "bus"):
                 self.bus.close()
         return self.stats()
+
+    def _restore_signing_streams(self) -> None:
+        """The ground station's signing streams as they were before a restart: a frame captured
+        before it stays a replay after it (a new stream alone would take any frame up to a minute
+        old, as the specification allows)."""
+        saved = self.store.load_signing_streams()
+        if self.store.problem:
+            log.warning(self.store.problem)
+            self.store.problem = None
+        taken = self.gcs_link.codec.signing.restore(saved)
+        if taken:
+            log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
+        self._signing_kept = self.gcs_link.codec.signing.streams()
+
+    def _keep_signing_streams(self) -> None:
+        """Save the signing streams if they moved (once a second at most, from ``_every_second``)."""
+        if self.signing_key is None:
+            return
+        streams = self.gcs_link.codec.signing.streams()
+        if streams != self._signing_kept:
+            try:
+                self.store.save_signing_streams(streams)
+                self._signing_kept = streams
+            except OSError as exc:
+                log.warning(f"signing streams not saved: {exc}")
 
     def _open_bus(self, loop) -> None:
         plan = self.plan
@@ -1012,6 +1042,7 @@ class Companion:
             for link in self.links:
                 link.send(hb)
             self._tell_refusals()
+            self._keep_signing_streams()
             if hasattr(self, "bus"):
                 report = self.health_report()
                 self.bus.publish_health(report)

@@ -45,10 +45,11 @@ class Mission:
 
 
 class StateStore:
-    """One JSON file in the state folder; None folder: keep nothing."""
+    """JSON files in the state folder (the mission; the signing streams); None folder: keep nothing."""
 
     def __init__(self, folder: Path | None) -> None:
         self.path = None if folder is None else Path(folder) / "mission.json"
+        self.signing_path = None if folder is None else Path(folder) / "signing.json"
         self.problem: str | None = None
 
     def load(self) -> Mission | None:
@@ -69,3 +70,20 @@ class StateStore:
     def save(self, mission: Mission) -> None:
         if self.path is not None:
             write_json_atomically(self.path, asdict(mission))
+
+    def load_signing_streams(self) -> dict:
+        """The signing streams kept by ``save_signing_streams`` ({} if none, or unusable: ``problem``)."""
+        if self.signing_path is None or not self.signing_path.exists():
+            return {}
+        try:
+            data = json.loads(self.signing_path.read_text(encoding="utf-8"))
+            if not isinstance(data, dict):
+                raise ValueError("not a JSON object")
+            return data
+        except (OSError, ValueError) as exc:
+            self.problem = f"{self.signing_path}: unusable signing streams ({exc.__class__.__name__}), starting without them"
+            return {}
+
+    def save_signing_streams(self, streams: dict) -> None:
+        if self.signing_path is not None:
+            write_json_atomically(self.signing_path, streams)

@@ -162,6 +162,25 @@ class Signing(mavlink.MAVLinkSigning):
         self.timestamp = max(self.timestamp, stamp)  # as the specification asks
         return True
 
+    def streams(self) -> dict[str, int]:
+        """Each stream's last timestamp, keyed "link,system,component" (to keep across a restart)."""
+        return {f"{link},{sysid},{compid}": stamp for (link, sysid, compid), stamp in self.stream_timestamps.items()}
+
+    def restore(self, saved: dict) -> int:
+        """Take back streams kept by ``streams`` (the newer timestamp wins); entries that are not
+        three small integers and a timestamp are skipped. Returns how many were taken."""
+        taken = 0
+        for key, stamp in saved.items():
+            try:
+                stream = tuple(int(x) for x in key.split(","))
+                if len(stream) != 3 or not all(0 <= x <= 255 for x in stream) or not 0 <= int(stamp) < 2**48:
+                    continue
+            except (AttributeError, TypeError, ValueError):
+                continue
+            self.stream_timestamps[stream] = max(int(stamp), self.stream_timestamps.get(stream, 0))
+            taken += 1
+        return taken
+
     def accept(self, mav, msg_id: int) -> bool:
         """MAVLink.signing.allow_unsigned_callback: called for every frame that did not pass
         ``check`` (or carried no signature). Only unsigned frames may pass, if ``allow_unsigned``

@@ -4,7 +4,9 @@ from ground stations with the key, without it, with another key, and from a repl
 
 from __future__ import annotations
 
+import json
 import secrets
+import signal
 import socket
 import subprocess
 import sys
@@ -15,7 +17,7 @@ import pytest
 
 from triswarm.gcs import missions
 from triswarm.gcs.link import GroundLink
-from triswarm.gcs.stack import Stack
+from triswarm.gcs.stack import Stack, free_ports, stop_in_turn
 from triswarm.protocol.mavlink import (COMP_AUTOPILOT, COMP_ONBOARD, SIGNATURE_REFUSED, mavlink, new_codec,
                                        read_signing_key, setup_signing)
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
@@ -83,6 +85,32 @@ def test_signed_frames_pass_once_and_only_with_the_key():
     assert parsed(receiver, bytes(forged)) == "BAD_DATA"
     assert parsed(receiver, command.pack(signer)) == "COMMAND_LONG"
     assert refused == {"refused_replay": 1, "refused_unsigned": 1, "refused_bad_signature": 2}
+
+
+def test_signing_streams_survive_a_round_trip_and_garbage_is_skipped(tmp_path):
+    from triswarm.companion.state import StateStore
+
+    sender, receiver = new_codec(254, 190), new_codec(1, COMP_ONBOARD)
+    setup_signing(sender, KEY, 7)
+    setup_signing(receiver, KEY, 1)
+    frame = mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0,
+                                                 0, 0, 0, 0, 0, 0, 0).pack(sender)
+    assert parsed(receiver, frame) == "COMMAND_LONG"
+    store = StateStore(tmp_path)
+    store.save_signing_streams(receiver.signing.streams())
+
+    restarted = new_codec(1, COMP_ONBOARD)
+    setup_signing(restarted, KEY, 1)
+    saved = store.load_signing_streams()
+    assert list(saved) == ["7,254,190"]
+    garbage = {"7,254": 1, "7,254,999": 1, "a,b,c": 1, "1,2,3": "late", "4,5,6": -1, "8,9,10": 2**48}
+    assert restarted.signing.restore({**saved, **garbage}) == 1
+    assert parsed(restarted, frame) == "BAD_DATA"  # a replay, after the "restart" too
+    assert parsed(restarted, mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0,
+                                                                  0, 0, 0, 0).pack(sender)) == "COMMAND_LONG"
+
+    store.signing_path.write_text("[1, 2")
+    assert store.load_signing_streams() == {} and "unusable signing streams" in store.problem
 
 
 # -- the stack ------------------------------------------------------------------------------------
@@ -155,3 +183,92 @@ def test_the_companion_takes_only_signed_frames_from_the_ground(tmp_path, paper_
     assert gcs["refused_unsigned"] >= 5 and gcs["refused_bad_signature"] >= 1 and gcs["refused_replay"] == 1, gcs
     fc = stack.stats("sitl")["vehicles"][0]
     assert fc["counters"].get("commands_unsupported") == 1 and not fc["armed"], fc
+
+
+# -- a restart ------------------------------------------------------------------------------------
+
+class SignedStation:
+    """A ground station on a raw UDP socket (system 254, component 190), signing as link 7."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.connect(("127.0.0.1", port))
+        self.sock.settimeout(0.05)
+        self.codec, self.reader = new_codec(254, 190), new_codec(254, 190)
+        setup_signing(self.codec, KEY, 7)
+
+    def command(self) -> bytes:
+        """A new signed COMMAND_LONG for the companion (it answers UNSUPPORTED)."""
+        return mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0,
+                                                    0, 0, 0, 0, 0, 0, 0).pack(self.codec)
+
+    def answered(self, frame: bytes, wait_s: float) -> bool:
+        """Send the frame; whether a COMMAND_ACK for it comes back within wait_s."""
+        self.sock.send(frame)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            try:
+                data = self.sock.recv(65536)
+            except (socket.timeout, ConnectionRefusedError):
+                continue
+            if any(m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_USER_1
+                   for m in self.reader.parse_buffer(data) or []):
+                return True
+        return False
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.mark.parametrize("keep_state", [True, False], ids=["state-dir", "no-state-dir"])
+def test_a_frame_captured_before_a_restart_is_still_a_replay_after_it(tmp_path, keep_state):
+    """With a state folder, the companion keeps the signing streams (once a second) and a frame it
+    took before a crash (SIGKILL) is refused after the restart. Without one, a restarted companion
+    sees the stream as new and takes any frame up to a minute old, as the specification allows:
+    the frame replayed here is a real replay."""
+    keyfile = tmp_path / "swarm.key"
+    keyfile.write_text(KEY.hex() + "\n")
+    port, fc_port = free_ports(2)
+    state = ["--state-dir", str(tmp_path / "state")] if keep_state else []
+    cmd = [sys.executable, "-m", "triswarm.companion.cli", "--id", "1", "--fc", f"udpout:127.0.0.1:{fc_port}",
+           "--gcs", f"udpin:127.0.0.1:{port}", "--signing-key", str(keyfile), "--stats", str(tmp_path / "stats.json"),
+           *state]
+    log = (tmp_path / "companion.log").open("w")
+    station = SignedStation(port)
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
+        for _ in range(60):  # until it is up (at most 30 s)
+            captured = station.command()
+            if station.answered(captured, 0.5):
+                break
+        else:
+            pytest.fail("the companion never answered")
+        if keep_state:
+            saved = tmp_path / "state" / "signing.json"
+            wait_for(lambda: saved.exists() and "7,254,190" in json.loads(saved.read_text()), 3.0, "the streams saved")
+        procs[0].kill()
+        procs[0].wait(timeout=10)
+
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
+        unsigned_heartbeat = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                               0, 0, 0, 3).pack(new_codec(254, 190))
+        reader = new_codec(254, 190)
+
+        def companion_heard() -> bool:
+            station.sock.send(unsigned_heartbeat)  # (taken unsigned: the companion answers)
+            try:
+                return any(m.get_type() == "HEARTBEAT" for m in reader.parse_buffer(station.sock.recv(65536)) or [])
+            except (socket.timeout, ConnectionRefusedError):
+                return False
+
+        wait_for(companion_heard, 30.0, "the restarted companion")
+        assert station.answered(captured, 1.0) is not keep_state  # the replay
+        assert station.answered(station.command(), 2.0)  # the station's next frame
+        stop_in_turn([procs[1:]], sig=signal.SIGTERM)
+    finally:
+        stop_in_turn([procs], sig=signal.SIGKILL)
+        station.close()
+        log.close()
+    gcs = json.loads((tmp_path / "stats.json").read_text())["links"]["gcs"]
+    assert gcs.get("refused_replay", 0) == (1 if keep_state else 0), gcs
