@@ -43,6 +43,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py
+	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
