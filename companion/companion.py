@@ -52,7 +52,8 @@ from triswarm.protocol.formation import (Formation, LeaderMove, QuinticTransfer,
 from triswarm.protocol.graph import Topology
 from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators, mode_name,
                                        local_ned_to_paper, mavlink, rates_to_paper, read_signing_key, setup_signing)
-from triswarm.protocol.plan import Plan, PlanError, in_flight_change_problem, plan_from_dict, spec_from_toml
+from triswarm.protocol.plan import (Plan, PlanError, actuator_demand, in_flight_change_problem, plan_from_dict,
+                                    spec_from_toml)
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
 
 from .bus import Bus, default_config, tune
@@ -69,6 +70,7 @@ IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
 SWITCH_MAX_JUMP = (5.0, 5.0)  # in flight, a new formation may start this far from the old one [m, m/s]
 WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m": 1.0, "altitude_m": 1.0, "rate_rad_s": 0.0}}
 LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
+MOVE_CHECK_STEP_S = 0.05  # a leader move is checked against the airframe's limits this often [s]
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
              mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
@@ -376,6 +378,11 @@ class Companion:
             leader = leader_with_moves(self.leader, [move])
         except ParameterError as exc:
             return mavlink.MAV_RESULT_DENIED, f"leader command refused: {exc}"
+        # the formation about the moving leader, through the move, against the airframe's limits
+        times = np.arange(at_s, max(leader.end_s, at_s) + MOVE_CHECK_STEP_S, MOVE_CHECK_STEP_S)
+        problem = actuator_demand(self.plan.rfl, leader, self.formation, times).problem(self.plan.airframe)
+        if problem is not None:
+            return mavlink.MAV_RESULT_DENIED, f"leader command refused: the move cannot be flown: {problem}"
         self.leader = leader
         m.leader_moves.append(move)
         self.store.save(m)

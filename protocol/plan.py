@@ -124,21 +124,10 @@ class Plan:
         return d
 
     def actuator_demand(self, times_s: np.ndarray) -> "ActuatorDemand":
-        """What flying the formation exactly asks of each drone's rotors at the given plan times:
-        the RFL (49) at x_r = x0 + h_i(t) with the input that keeps it there,
-        v = B_tilde (x_r_dot - A_r x_r) (exact when (76) holds), through Remark 1 to rotor speeds
-        and servo angles. The feedback needs room on top of this; the entry and the rejoins are
-        shaped by the companion and not included."""
-        times = np.atleast_1d(np.asarray(times_s, dtype=float))
-        refs = [self.reference(float(t)) for t in times]
-        x_r = np.stack([r[0] for r in refs])  # (T, N, 12)
-        x_r_dot = np.stack([r[1] for r in refs])
-        A_r, B_r = self.rfl.A_r, self.rfl.B_r
-        v = (x_r_dot - x_r @ A_r.T) @ np.linalg.pinv(B_r).T
-        u, _ = self.rfl.control_xr(x_r, v)
-        omega, alpha = actuator_inverse(u)  # (T, N, 3) each
-        return ActuatorDemand(times, omega.min(axis=2), omega.max(axis=2), np.abs(alpha).max(axis=2),
-                              np.abs(x_r[..., XR_EULER][..., 1]))
+        """What flying the plan's formation exactly asks of each drone's rotors at the given plan
+        times (``actuator_demand``). The entry and the rejoins are shaped by the companion and not
+        included."""
+        return actuator_demand(self.rfl, self.leader, self.formation, times_s)
 
     def entry_formation(self, start_position_m: np.ndarray, t0_s: float = 0.0, target: Formation | None = None) -> Formation:
         """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0:
@@ -167,6 +156,25 @@ class Plan:
         if isinstance(spec["formation"].get("attitude_rad"), list) and np.ndim(spec["formation"]["attitude_rad"]) == 2:
             raise PlanError(f"{self.source}: per-drone attitudes cannot be resized to {n_agents} drones")
         return plan_from_dict(spec, self.source)
+
+
+def actuator_demand(rfl: RFL, leader: Formation, formation: Formation, times_s: np.ndarray) -> "ActuatorDemand":
+    """What flying ``formation`` about ``leader`` exactly asks of each drone's rotors at the given
+    plan times: the RFL (49) at x_r = x0 + h_i(t) with the input that keeps it there,
+    v = B_tilde (x_r_dot - A_r x_r) (exact when (76) holds), through Remark 1 to rotor speeds and
+    servo angles. The feedback needs room on top of this."""
+    times = np.atleast_1d(np.asarray(times_s, dtype=float))
+    x_r, x_r_dot = [], []
+    for t in times:
+        (x0, x0_dot), (h, h_dot) = (f.offsets(float(t)) for f in (leader, formation))
+        x_r.append(x0[0] + h)
+        x_r_dot.append(x0_dot[0] + h_dot)
+    x_r, x_r_dot = np.stack(x_r), np.stack(x_r_dot)  # (T, N, 12)
+    v = (x_r_dot - x_r @ rfl.A_r.T) @ np.linalg.pinv(rfl.B_r).T
+    u, _ = rfl.control_xr(x_r, v)
+    omega, alpha = actuator_inverse(u)  # (T, N, 3) each
+    return ActuatorDemand(times, omega.min(axis=2), omega.max(axis=2), np.abs(alpha).max(axis=2),
+                          np.abs(x_r[..., XR_EULER][..., 1]))
 
 
 @dataclass(frozen=True)

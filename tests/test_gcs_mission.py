@@ -159,6 +159,14 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             assert held_plan_id(link, 1) == held_plan_id(link, 2) == pid
             assert flying(link, 1) and flying(link, 2)
 
+            # a leader move past the airframe's limits (40 m in 1 s: about 230 m/s^2) is refused
+            # with the reason, and changes nothing
+            t_plan = link.param(1, COMP_ONBOARD, "PLAN_T_S")
+            result, why = link.command(1, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
+                                       [100.0, float("nan"), t_plan + 1.0, 0.0, 45.0, -5.0, 0.0])
+            assert result == mavlink.MAV_RESULT_DENIED and "the move cannot be flown" in why, why
+            assert "past the motor limit (12000 RPM)" in why, why
+
             # the leader moves 6 m north at 2 m/s on both drones at once: the pair's midpoint
             # (the centre of a two-drone polygon) follows it
             t_plan = link.param(1, COMP_ONBOARD, "PLAN_T_S")
