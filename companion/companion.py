@@ -70,7 +70,8 @@ IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
 SWITCH_MAX_JUMP = (5.0, 5.0)  # in flight, a new formation may start this far from the old one [m, m/s]
 WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m": 1.0, "altitude_m": 1.0, "rate_rad_s": 0.0}}
 LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
-MOVE_CHECK_STEP_S = 0.05  # a leader move is checked against the airframe's limits this often [s]
+MOVE_CHECK_STEP_S = 0.05  # a leader move is checked against the airframe's limits this often [s],
+MOVE_CHECK_SAMPLES = 100  # or at this many instants over a long move
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
              mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
@@ -379,7 +380,10 @@ class Companion:
         except ParameterError as exc:
             return mavlink.MAV_RESULT_DENIED, f"leader command refused: {exc}"
         # the formation about the moving leader, through the move, against the airframe's limits
-        times = np.arange(at_s, max(leader.end_s, at_s) + MOVE_CHECK_STEP_S, MOVE_CHECK_STEP_S)
+        # (at most MOVE_CHECK_SAMPLES instants: a few milliseconds of the loop, once per command)
+        end_s = max(leader.end_s, at_s)
+        step_s = max(MOVE_CHECK_STEP_S, (end_s - at_s) / MOVE_CHECK_SAMPLES)
+        times = np.arange(at_s, end_s + step_s, step_s)
         problem = actuator_demand(self.plan.rfl, leader, self.formation, times).problem(self.plan.airframe)
         if problem is not None:
             return mavlink.MAV_RESULT_DENIED, f"leader command refused: the move cannot be flown: {problem}"
