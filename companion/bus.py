@@ -279,9 +279,13 @@ class Bus:
         e = Estimate(self.agent, self.plan_id, self.seq, time.time(), t_plan_s, status, xi)
         self._pub_estimate.put(encode_estimate(e))
 
-    def publish_status(self, status: AgentStatus, reason: str = "") -> None:
+    def publish_status(self, status: AgentStatus, reason: str = "", since_s: float | None = None) -> None:
+        """The status, why, and since when (Unix time [s]). Sent at every change and once a second,
+        whole each time: a put lost on the way costs a second, not the reason or the time."""
+        now = time.time()
         self._pub_status.put(json.dumps({"agent": self.agent, "plan": self.plan_id, "status": status.name,
-                                         "reason": reason, "t": time.time()}).encode())
+                                         "reason": reason, "since": now if since_s is None else since_s,
+                                         "t": now}).encode())
 
     def publish_health(self, health: dict) -> None:
         self._pub_health.put(json.dumps(health).encode())

@@ -192,6 +192,7 @@ class Companion:
         }
         self.values = {k: p.default for k, p in self.params.items()}
         self.phase = Phase.IDLE
+        self._phase_reason, self._phase_since = "", time.time()  # why and since when [Unix s] (holding: why)
         self.mission: Mission | None = None
         self.plan: Plan | None = None
         self.leader: Formation | None = None  # the plan's leader x0 with the operator's moves
@@ -747,10 +748,10 @@ class Companion:
         if phase != self.phase:
             if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
                 self._flying_since = time.monotonic()
-            self.phase = phase
+            self.phase, self._phase_reason, self._phase_since = phase, reason, time.time()
             status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(phase, AgentStatus.IDLE)
             if hasattr(self, "bus"):
-                self.bus.publish_status(status, reason)
+                self.bus.publish_status(status, reason, self._phase_since)
             if phase == Phase.HOLDING:
                 self.statustext(f"companion {self.agent}: holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
             elif phase == Phase.FLYING:
@@ -1059,7 +1060,7 @@ class Companion:
                 self.bus.publish_health(report)
                 status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(
                     self.phase, AgentStatus.IDLE)
-                self.bus.publish_status(status)
+                self.bus.publish_status(status, self._phase_reason, self._phase_since)
                 boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
                 for name, key in (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
                                   ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"),

@@ -115,7 +115,7 @@ class BusWatch:
         import zenoh
 
         self.session = zenoh.open(zenoh.Config.from_file(str(config)))
-        self.statuses: list[tuple[float, int, str, str]] = []  # (unix time, agent, status, reason)
+        self.statuses: list[tuple[float, int, str, str]] = []  # (since [unix time], agent, status, reason)
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(f"triswarm/{SWARM}/agent/*/status", self._on_status)
 
@@ -123,8 +123,10 @@ class BusWatch:
         try:
             msg = json.loads(sample.payload.to_bytes())
             with self._lock:
-                self.statuses.append((time.time(), int(msg["agent"]), msg["status"], msg.get("reason", "")))
-        except (ValueError, KeyError):
+                # when the agent's status began, by its own word: a status put lost on the way is
+                # repeated, whole, within a second
+                self.statuses.append((float(msg["since"]), int(msg["agent"]), msg["status"], msg.get("reason", "")))
+        except (ValueError, KeyError, TypeError):
             pass
 
     def close(self) -> None:
@@ -133,7 +135,7 @@ class BusWatch:
 
 
 def changes(statuses, agent: int, start: float) -> list[tuple[float, str, str]]:
-    """An agent's status changes (plan time, status, reason); the 1 Hz repeats dropped."""
+    """An agent's status changes (plan time they began, status, reason); the 1 Hz repeats dropped."""
     out: list[tuple[float, str, str]] = []
     for t, a, status, reason in statuses:
         if a == agent and (not out or out[-1][1] != status):
