@@ -89,6 +89,9 @@ class Phase(enum.Enum):
 
 
 PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3}
+PHASE_STATUS = {Phase.IDLE: AgentStatus.IDLE, Phase.SCHEDULED: AgentStatus.IDLE, Phase.FLYING: AgentStatus.FLYING,
+                Phase.HOLDING: AgentStatus.HOLDING}
+"""What the bus says of each phase."""
 
 
 @dataclass(frozen=True)
@@ -749,13 +752,16 @@ class Companion:
             if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
                 self._flying_since = time.monotonic()
             self.phase, self._phase_reason, self._phase_since = phase, reason, time.time()
-            status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(phase, AgentStatus.IDLE)
-            if hasattr(self, "bus"):
-                self.bus.publish_status(status, reason, self._phase_since)
+            self._publish_status()
             if phase == Phase.HOLDING:
                 self.statustext(f"companion {self.agent}: holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
             elif phase == Phase.FLYING:
                 self.statustext(f"companion {self.agent}: in formation")
+
+    def _publish_status(self) -> None:
+        """The phase on the bus, with why and since when."""
+        if hasattr(self, "bus"):
+            self.bus.publish_status(PHASE_STATUS[self.phase], self._phase_reason, self._phase_since)
 
     def _plan_time(self, s: Sample) -> float:
         return self.fc_unix(s.boot_ms) - self.mission.start_unix_s
@@ -1058,9 +1064,7 @@ class Companion:
             if hasattr(self, "bus"):
                 report = self.health_report()
                 self.bus.publish_health(report)
-                status = {Phase.FLYING: AgentStatus.FLYING, Phase.HOLDING: AgentStatus.HOLDING}.get(
-                    self.phase, AgentStatus.IDLE)
-                self.bus.publish_status(status, self._phase_reason, self._phase_since)
+                self._publish_status()  # (whole again each second: a put may be lost on the way)
                 boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
                 for name, key in (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
                                   ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"),

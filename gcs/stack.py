@@ -56,6 +56,8 @@ class Stack:
     """Extra arguments per agent (e.g. Zenoh endpoints)."""
     wrap: list[str] = field(default_factory=list)
     """Prefix for every command (e.g. ip netns exec NAME)."""
+    companions: bool = True
+    """Start the companions (False: the SITL alone, its ports and the Zenoh ports chosen)."""
 
     def __post_init__(self) -> None:
         self.workdir = Path(self.workdir)
@@ -86,7 +88,7 @@ class Stack:
         self.gcs_ports = free_ports(self.n)
         self.zenoh_base = free_ports(self.n, contiguous=True)[0] - 1
         self.start_at = time.time() + self.start_delay_s
-        for i in range(1, self.n + 1):
+        for i in range(1, self.n + 1 if self.companions else 1):
             self.start_companion(i)
         from .link import write_manifest
 

@@ -87,16 +87,13 @@ def cpu_seconds(pid: int) -> float:
 
 
 def run(n: int, seconds: float, rate_hz: float, zenoh: bool = True, router: bool = False) -> dict:
-    from triswarm.gcs.stack import free_ports, stop_in_turn
+    from triswarm.gcs.stack import Stack, free_ports, stop_in_turn
 
-    with tempfile.TemporaryDirectory() as tmp:
-        manifest = Path(tmp) / "manifest.json"
-        sitl = subprocess.Popen([sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(n), "--manifest",
-                                 str(manifest), "--base-port", "0", "--quiet"], stdout=subprocess.DEVNULL)
-        procs = [sitl]
+    with tempfile.TemporaryDirectory() as tmp, Stack(None, Path(tmp) / "run", n, companions=False) as stack:
+        services = [stack.procs["sitl"]]
         skeletons: list[subprocess.Popen] = []
-        router_port = None
         try:
+            router_port = None
             if router:
                 router_port = free_ports(1)[0]
                 config = Path(tmp) / "router.json5"
@@ -104,37 +101,29 @@ def run(n: int, seconds: float, rate_hz: float, zenoh: bool = True, router: bool
                                               "listen": {"endpoints": [f"tcp/127.0.0.1:{router_port}",
                                                                        f"udp/127.0.0.1:{router_port}"]},
                                               "transport": {"unicast": {"max_links": 2}}}))
-                procs.append(subprocess.Popen([sys.executable, str(ROUTER), str(config)], stdout=subprocess.DEVNULL))
-            deadline = time.monotonic() + 60.0
-            while not manifest.exists():
-                if sitl.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError("sitl did not start")
-                time.sleep(0.05)
-            vehicles = json.loads(manifest.read_text())["vehicles"]
-            base = free_ports(n, contiguous=True)[0] - 1
+                services.append(subprocess.Popen([sys.executable, str(ROUTER), str(config)], stdout=subprocess.DEVNULL))
             skeletons = [subprocess.Popen([sys.executable, __file__, "--skeleton", str(i), "--n", str(n),
-                                           "--fc", vehicles[i - 1]["links"]["companion"]["pymavlink"],
-                                           "--zenoh-base-port", str(base), "--rate-hz", str(rate_hz),
+                                           "--fc", v["links"]["companion"]["pymavlink"],
+                                           "--zenoh-base-port", str(stack.zenoh_base), "--rate-hz", str(rate_hz),
                                            *([] if zenoh else ["--without-zenoh"]),
                                            *([] if router_port is None else ["--router-port", str(router_port)])],
                                           stdout=subprocess.PIPE, text=True)
-                         for i in range(1, n + 1)]
-            procs += skeletons
+                         for i, v in enumerate(stack.manifest["vehicles"], start=1)]
+            procs = services + skeletons
             time.sleep(WARM_UP_S)
             if any(p.poll() is not None for p in procs):
                 raise RuntimeError("a process exited early")
             before = [cpu_seconds(p.pid) for p in procs]
             t0 = time.monotonic()
             time.sleep(seconds)
-            used = [cpu_seconds(p.pid) - b for p, b in zip(procs, before)]
             wall = time.monotonic() - t0
+            share = [(cpu_seconds(p.pid) - b) / wall for p, b in zip(procs, before)]
         finally:
-            stop_in_turn([skeletons, procs[:len(procs) - len(skeletons)]])
+            stop_in_turn([skeletons, services[1:]])  # (the SITL stops with the stack)
     reports = [json.loads(p.stdout.read().strip().splitlines()[-1]) for p in skeletons]
-    share = [u / wall for u in used]
-    services, share = share[:len(share) - n], share[len(share) - n:]
-    return {"sitl": services[0], "router": services[1] if router else 0.0,
-            "skeleton_mean": float(np.mean(share)), "skeleton_max": float(np.max(share)),
+    ours = share[len(services):]
+    return {"sitl": share[0], "router": share[1] if router else 0.0,
+            "skeleton_mean": float(np.mean(ours)), "skeleton_max": float(np.max(ours)),
             "slowest_sample_rate_hz": min(r["sample_rate_hz"] for r in reports),
             "fewest_estimates": min(r["estimates"] for r in reports)}
 
