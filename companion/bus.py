@@ -2,7 +2,8 @@
 
 Transport: every session has a TCP and a UDP link to each peer (``transport/unicast/max_links`` 2).
 Estimates are published best effort (express, dropped under congestion) and so ride UDP: a lost
-estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission.
+estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission. In
+lockstep (``reliable_estimates``) every estimate is awaited, so they are published reliably (TCP).
 Declarations, liveliness, status and health are reliable and ride TCP.
 
 Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
@@ -40,12 +41,14 @@ DEFAULT_ZENOH_BASE_PORT = 17447
 INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
 
 
-def default_config(agent: int, n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
+def default_config(agents: int | frozenset[int], n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
                    host: str = "127.0.0.1") -> zenoh.Config:
     """Peers on one machine, no router, no multicast: agent i listens on TCP and UDP port
-    base + i and connects to every other agent's."""
-    listen = [f"tcp/{host}:{base_port + agent}", f"udp/{host}:{base_port + agent}"]
-    connect = [f"{proto}/{host}:{base_port + j}" for j in range(1, n_agents + 1) if j != agent
+    base + i and connects to every other agent's. A process of several agents listens on each of
+    theirs and connects to the others'."""
+    mine = frozenset({agents}) if isinstance(agents, int) else agents
+    listen = [f"{proto}/{host}:{base_port + i}" for i in sorted(mine) for proto in ("tcp", "udp")]
+    connect = [f"{proto}/{host}:{base_port + j}" for j in range(1, n_agents + 1) if j not in mine
                for proto in ("tcp", "udp")]
     return peer_config(listen, connect)
 
@@ -101,6 +104,10 @@ class Bus:
     statuses: dict[int, AgentStatus] = field(default_factory=dict)
     on_estimate: Callable[[], None] | None = None
     """Called (in the loop) after new neighbour estimates were taken in."""
+    changes: int = 0
+    """Counts the changes of ``alive`` and ``statuses`` (a reader caches what it derives from them)."""
+    reliable: bool = False
+    """Publish estimates reliably (lockstep: a lost one would stall the swarm's clock)."""
     previous_plan_id: int | None = None
     """After a plan change in flight, the plan before it: its estimates still count (neighbours
     switch within a tick of each other, and their estimates stay continuous through it)."""
@@ -108,7 +115,9 @@ class Bus:
     def switch_plan(self, plan_id: int) -> None:
         self.previous_plan_id, self.plan_id = self.plan_id, plan_id
 
-    def open(self, config: zenoh.Config, loop: asyncio.AbstractEventLoop) -> None:
+    def open(self, config: zenoh.Config | zenoh.Session, loop: asyncio.AbstractEventLoop) -> None:
+        """Open a session with ``config``, or declare this agent's keys on a session of the process
+        (several agents in one process share it; its owner closes it)."""
         self.loop = loop
         self._inbox: deque[bytes] = deque(maxlen=INBOX_SIZE)
         self._doorbell, self._bell = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -116,11 +125,10 @@ class Bus:
             sock.setblocking(False)
         self.waiting = False
         """Set by the loop while it waits for estimates: the callbacks then ring the doorbell."""
-        self.session = zenoh.open(config)
+        self._own_session = not isinstance(config, zenoh.Session)
+        self.session = zenoh.open(config) if self._own_session else config
         s = self.session
-        self._pub_estimate = s.declare_publisher(estimate_key(self.swarm, self.agent), express=True,
-                                                 reliability=zenoh.Reliability.BEST_EFFORT,
-                                                 congestion_control=zenoh.CongestionControl.DROP)
+        self._declare_estimate_publisher()
         self._pub_status = s.declare_publisher(status_key(self.swarm, self.agent))
         self._pub_health = s.declare_publisher(health_key(self.swarm, self.agent))
         self._token = s.liveliness().declare_token(alive_key(self.swarm, self.agent))
@@ -136,6 +144,22 @@ class Bus:
         self.alive.add(self.agent)
         self.seq = 0
         loop.add_reader(self._doorbell.fileno(), self._answer_door)
+
+    def _declare_estimate_publisher(self) -> None:
+        reliable = self.reliable
+        self._pub_estimate = self.session.declare_publisher(
+            estimate_key(self.swarm, self.agent), express=True,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP)
+
+    def reliable_estimates(self) -> None:
+        """From now on publish estimates reliably."""
+        if self.reliable:
+            return
+        self.reliable = True
+        if "session" in self.__dict__:
+            self._pub_estimate.undeclare()
+            self._declare_estimate_publisher()
 
     def _handover(self, agent: int) -> Callable:
         """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
@@ -169,7 +193,10 @@ class Bus:
         for sub in self._subs:
             sub.undeclare()
         self._token.undeclare()
-        session.close()
+        for pub in (self._pub_estimate, self._pub_status, self._pub_health):
+            pub.undeclare()
+        if self._own_session:
+            session.close()
         try:
             self.loop.remove_reader(self._doorbell.fileno())
         except (RuntimeError, ValueError):
@@ -258,8 +285,9 @@ class Bus:
         except (ValueError, KeyError, TypeError):
             self.counters["drop_bad_status"] += 1
             return
-        if msg.get("plan") in (self.plan_id, self.previous_plan_id):
+        if msg.get("plan") in (self.plan_id, self.previous_plan_id) and self.statuses.get(agent) != status:
             self.statuses[agent] = status
+            self.changes += 1
 
     def _alive(self, key: str, present: bool) -> None:
         agent = agent_of_key(key)
@@ -271,6 +299,7 @@ class Bus:
         elif agent != self.agent:
             self.alive.discard(agent)
             self.statuses.pop(agent, None)
+        self.changes += 1
 
     # -- outgoing ----------------------------------------------------------------------------
 
