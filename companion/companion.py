@@ -230,7 +230,9 @@ class Companion:
         self.fc = FcState()
         self.clock = FcClock()
         self.answers = Answers(lambda frame: self.fc_link.write(frame))
-        self._silent: set[int] = set()  # lockstep: neighbours the watchdog counts absent until they publish
+        self._silent: dict[int, float] = {}
+        """Lockstep: the neighbours the watchdog counts absent, each with the instant [plan s] it had no
+        estimate for; absent until one for that instant or a later one comes."""
         self._presence_base: tuple | None = None
         self.health = LoopHealth(1.0 / opts.rate_hz)
         self.params = {
@@ -922,7 +924,8 @@ class Companion:
         if time.monotonic() - w.since_wall > NB_WATCHDOG_S:
             late = [j for j in w.expected if not self.bus.ready([j], w.ref.t_p, tolerance)]
             if late:
-                self._silent.update(late)
+                for j in late:
+                    self._silent.setdefault(j, w.ref.t_p - tolerance)
                 self.log.warning(f"lockstep: no estimate for t_plan {w.ref.t_p:.3f} from agent(s) {late} in "
                             f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
             w.expected = [j for j in w.expected if j not in late]
@@ -1020,10 +1023,12 @@ class Companion:
         nb = bus.neighbours.get(j)
         if nb is None:
             return True  # not one of ours to listen to: liveliness and status decide
-        if j in self._silent:  # (lockstep: the watchdog's) until an estimate of now comes
-            if nb.t_plan_s < self._t_p - 0.5 * self.ctrl.dt_s:
+        if j in self._silent:  # (lockstep: the watchdog's) until it has published since. (Not "an
+            # estimate of now": nobody waits for a silent neighbour, so its estimate of now would have
+            # to beat this tick, a race an agent on the same clock loses tick after tick.)
+            if nb.t_plan_s < self._silent[j]:
                 return False
-            self._silent.discard(j)
+            del self._silent[j]
         if not nb.heard:
             return starting
         if nb.status != AgentStatus.FLYING:
