@@ -118,14 +118,22 @@ class BusObserver:
         self.session.close()
 
     def _on_status(self, sample) -> None:
-        msg = json.loads(sample.payload.to_bytes())
+        try:  # (garbage a test puts on the bus comes back here too: json.loads takes b"\x00..." for UTF-16)
+            msg = json.loads(sample.payload.to_bytes())
+            status = (float(msg["since"]), int(msg["agent"]), msg["status"], msg.get("reason", ""))
+        except (ValueError, KeyError, TypeError):
+            return
         with self._lock:
-            self.statuses.append((float(msg["since"]), int(msg["agent"]), msg["status"], msg.get("reason", "")))
+            self.statuses.append(status)
 
     def _on_health(self, sample) -> None:
-        msg = json.loads(sample.payload.to_bytes())
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            agent = int(msg["agent"])
+        except (ValueError, KeyError, TypeError):
+            return
         with self._lock:
-            self.health[int(msg["agent"])].append(msg)
+            self.health[agent].append(msg)
 
     def put(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload)
