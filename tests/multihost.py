@@ -79,9 +79,22 @@ class Hosts:
     def exec_prefix(self, host: str) -> list[str]:
         return self.netns[host].exec_prefix()
 
-    def link(self, host: str, up: bool) -> None:
-        """Cut (or restore) a host's link: its veth end in the root namespace, down or up."""
-        _run("ip", "link", "set", self.root_veth[host], "up" if up else "down")
+    def cut(self, host: str, keep: list[tuple[str, int]]) -> None:
+        """Cut a host off the network but for loopback and the UDP peers ``keep`` ((address, port):
+        e.g. its companions' flight-controller links, a serial line on a drone): iptables in its
+        namespace drops every other packet in and out. The drop rules go in last, all at once."""
+        ns = self.netns[host]
+        for chain, interface, peer, port in (("INPUT", "-i", "-s", "--sport"), ("OUTPUT", "-o", "-d", "--dport")):
+            ns.iptables("-A", chain, interface, "lo", "-j", "ACCEPT")
+            for address, p in keep:
+                ns.iptables("-A", chain, "-p", "udp", peer, address, port, str(p), "-j", "ACCEPT")
+        for chain in ("INPUT", "OUTPUT"):
+            ns.iptables("-A", chain, "-j", "DROP")
+
+    def restore(self, host: str) -> None:
+        """Undo ``cut``: the host's rules flushed, every packet passes again."""
+        for chain in ("INPUT", "OUTPUT"):
+            self.netns[host].iptables("-F", chain)
 
     def leftovers(self) -> list[str]:
         """Interfaces and namespaces of ours still there (empty after exit)."""

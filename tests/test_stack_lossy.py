@@ -1,13 +1,44 @@
-"""The whole stack with a bad network between the companions: inside a network namespace this test
-creates, all Zenoh traffic between the companions goes through a relay that delivers it 20 ms late
-(UDP and TCP), and iptables drops 20 % of the Zenoh data plane at random (UDP, where the estimates
-ride). Every drone must stay within 0.5 m of its place in the formation, judged from the flight
-controllers' telemetry.
+"""The whole stack in real time with a bad network between the companions.
 
-TCP (declarations, liveliness, status) is delayed but not dropped here: at 20 % segment loss TCP's
-retransmission back-off outlasts Zenoh's 1 s lease now and then, a session closes and reconnects, and
-the agents that lose their path to the leader hold for a moment. That case is not handled yet (see
-the README)."""
+What is impaired. Inside a network namespace this test creates, all Zenoh traffic between the six
+companions (one per process, each a Zenoh peer of the others) goes through a relay of the test's
+own that delivers every datagram and every TCP chunk 20 ms late, in both directions, and iptables
+drops a random 20 % of the relayed UDP datagrams, where the estimates ride (best effort, one per
+control period). TCP (declarations, liveliness, status, health) is delayed but not dropped: at 20 %
+segment loss TCP's retransmission back-off outlasts Zenoh's 1 s lease now and then, a session
+closes and reconnects, and the agents that lose their path to the leader hold for a moment; that
+case is not handled yet. The MAVLink links to the flight controllers are not impaired.
+
+Why real time. Delay and loss reach the control only when the clock is the wall's: on the
+simulator's lockstep clock every companion waits for every estimate, which then rides TCP, so the
+relay only slows the run down (measured: 3 simulated seconds per 10 of wall time with the UDP loss,
+which then touches nothing but keep-alives; 1 per 17 with TCP loss too, and the sessions drop).
+
+What is judged, from the flight controllers' own telemetry and counters, with the margin measured
+on this two-core machine under an extra busy-loop process:
+- every drone within POSITION_BOUND_M and ATTITUDE_BOUND_RAD of its place over [20, 40] s of plan
+  time (the three graphs, switched every 5 s);
+- no flight controller fell back to its failsafe (a companion silent for 0.3 s), no agent held
+  (lost its path to the leader), every companion ran to the end without a failed tick;
+- the impairment happened: about 20 % of the relayed datagrams dropped both ways (iptables'
+  counters), and the estimates the companions used came through the relay (their neighbour age,
+  median, above the 20 ms delay).
+
+What the real-time verdict needs from the machine. The controller compensates the servos' 10 ms
+exactly; whatever time passes between a telemetry sample and its command reaching the flight
+controller is extra delay: 15 ms of it cost 0.023 m, 18-20 ms lose the formation, at 100 and
+200 Hz alike, while the estimates' age and loss change nothing measurable (in-process,
+tests/bench/bench_latency_margin.py). A loaded machine makes such latency. So the stack (the SITL
+standing for six flight controllers, the six companions for six onboard computers, the relay for
+the network) runs at niceness NICE, in a session of its own at that niceness (with autogroups,
+Linux shares the CPU between sessions whatever their processes' niceness), ahead of the machine's
+other work, as a drone's control loop has a computer of its own; and the companions fly at 100 Hz,
+the plan's 200 Hz halved. Measured with a busy loop beside it and other jobs on the machine (load
+average 5-8): at 100 Hz with that priority the latency p99 is 9-13 ms and 1-4 % of the ticks
+miss; at 200 Hz 30-40 % miss and the formation is lost; at 100 Hz without
+the priority the busy loop alone costs 0.28 rad, and with the other jobs two runs of three failed
+(flight controllers in failsafe; the formation lost). tests/lossy_flight.py starts the plan when all six companions are ready, as an
+operator does, so a slow start-up cannot make one late."""
 
 import json
 import os
@@ -23,6 +54,13 @@ from .netem import NetNamespace
 pytestmark = pytest.mark.slow
 DROP = 0.2
 DELAY_MS = 20.0
+RATE_HZ = 100.0
+NICE = -10
+FROM_S, UNTIL_S = 20.0, 40.0
+POSITION_BOUND_M, ATTITUDE_BOUND_RAD = 0.25, 0.1
+"""What a user needs of six drones 10 m apart: each in its place within 0.25 m, and its attitude within
+0.1 rad (6 degrees) of the plan's. Measured under load: 0.015-0.043 m and 0.004-0.030 rad (a loop
+that answers 15-20 ms late loses the formation by kilometres, not by centimetres)."""
 
 
 def test_drop_20_percent_and_delay_20_ms(tmp_path):
@@ -39,25 +77,40 @@ def test_drop_20_percent_and_delay_20_ms(tmp_path):
             rule = ["OUTPUT", "-p", "udp", "-m", "multiport", *match]
             ns.iptables("-A", *rule)
             ns.iptables("-A", *rule, "-m", "statistic", "--mode", "random", "--probability", str(DROP), "-j", "DROP")
-        run = subprocess.run(ns.exec_prefix() + [sys.executable, str(Path(__file__).with_name("lossy_flight.py")),
-                                                 str(out), str(tmp_path / "run"), "--delay-ms", str(DELAY_MS)],
+        run = subprocess.run(ns.exec_prefix() + [sys.executable, str(Path(__file__).with_name("lossy_flight.py")), str(out),
+                                                 str(tmp_path / "run"), "--delay-ms", str(DELAY_MS), "--rate-hz", str(RATE_HZ),
+                                                 "--from-s", str(FROM_S), "--until-s", str(UNTIL_S), "--nice", str(NICE)],
                              capture_output=True, text=True, timeout=240)
         counts = ns.rule_packets("OUTPUT")
     assert run.returncode == 0, run.stderr[-4000:]
     result = json.loads(out.read_text())
-    print(json.dumps({"iptables_packets": counts, "relay": result["relay"], "worst": result["worst"],
-                      "neighbour_age_p50_ms": {i: c["loop"]["neighbour_age_p50_ms"] for i, c in result["companions"].items()}}))
+    loops = {i: c["loop"] for i, c in result["companions"].items()}
+    print("MEASURED " + json.dumps({
+        "iptables_packets": counts, "relay": result["relay"], "worst": result["worst"], "times": result["times"],
+        "cpu_s": result["cpu_s"], "flown_s": result["flown_s"], "sitl": result["sitl"],
+        "clock_behind_wall_s": result["clock_behind_wall_s"], "scheduling": result["scheduling"], "along_track_lag_ms": result["along_track_lag_ms"],
+        "loop": {i: {k: lp.get(k) for k in ("ticks", "deadline_misses", "latency_p50_ms", "latency_p99_ms",
+                                             "neighbour_age_p50_ms", "neighbour_age_p99_ms", "cpu_fraction")}
+                 for i, lp in loops.items()}}))
+    assert result["scheduling"]["nice"] == NICE, result["scheduling"]
 
-    # the impairment happened: about 20 % of the relayed datagrams dropped, both ways ...
+    # the impairment happened: about 20 % of the relayed datagrams dropped, both ways
     assert len(counts) == 4, counts
     for sent, dropped in zip(counts[0::2], counts[1::2]):
-        assert sent > 20_000 and dropped / sent == pytest.approx(DROP, abs=0.02), counts
-    # ... and the estimates the companions used came through the relay (20 ms late at least)
-    for i, s in result["companions"].items():
-        assert s["loop"]["neighbour_age_p50_ms"] > DELAY_MS, (i, s["loop"])
-        assert s["tick_errors"] == 0
-    assert result["relay"]["udp_forward"] > 20_000 and result["relay"]["tcp_forward"] > 100, result["relay"]
-    assert all(result["alive"].values()), result["alive"]
+        assert sent > 10_000 and dropped / sent == pytest.approx(DROP, abs=0.02), counts
+    assert result["relay"]["udp_forward"] > 10_000 and result["relay"]["tcp_forward"] > 100, result["relay"]
 
+    # every companion ran to the end, none late for the start, none failed a tick ...
+    assert all(result["alive"].values()), result["alive"]
+    assert not result["late"], result["late"]
+    assert all(c["tick_errors"] == 0 for c in result["companions"].values())
+    # ... kept its vehicle (the flight controllers never switched to their failsafe) and its path to the leader
+    assert all(modes == [] for modes in result["modes"].values()), result["modes"]
+    assert all(h == [] for h in result["holds"].values()), result["holds"]
+    # the estimates the companions used came through the relay (20 ms late at least)
+    for i, lp in loops.items():
+        assert lp["neighbour_age_p50_ms"] is not None and lp["neighbour_age_p50_ms"] > DELAY_MS, (i, lp)
     # and the formation held
-    assert result["ok"], f"worst (position m, attitude rad) per drone over [25, 50] s: {result['worst']}"
+    for i, (p, a) in result["worst"].items():
+        assert p <= POSITION_BOUND_M and a <= ATTITUDE_BOUND_RAD, \
+            f"worst (position m, attitude rad) per drone over [{FROM_S}, {UNTIL_S}] s: {result['worst']}"
