@@ -141,6 +141,20 @@ class RotatingPolygon(Formation):
         z3 = np.zeros((n, 3))
         return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
 
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``kinematics(t).offsets()`` written straight into h and h_dot (the control loop's hot path)."""
+        n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
+        ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
+        s, c = np.sin(ang), np.cos(ang)
+        h = np.zeros((n, 12))
+        h_dot = np.zeros((n, 12))
+        h[:, 0], h[:, 1] = R * w * c, -R * w * s              # p_dot
+        h[:, 6:9] = self.attitude_rad                          # eta
+        h[:, 9], h[:, 10], h[:, 11] = R * s, R * c, self.altitude_m  # p
+        h_dot[:, 0], h_dot[:, 1] = -R * w * w * s, -R * w * w * c    # p_ddot
+        h_dot[:, 9:11] = h[:, 0:2]                              # p_dot
+        return h, h_dot
+
 
 @dataclass(frozen=True)
 class KeyframeFormation(Formation):
@@ -238,6 +252,29 @@ class Blend(_Transition):
     differentiated with the product rule, so (76) holds throughout. Before t0 it is ``source``,
     after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
     exactly where and how fast that source is."""
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``kinematics(t).offsets()``, blended in offset coordinates (the control loop's hot path):
+        h = [p_dot, eta_dot, eta, p] holds every value and first derivative, h_dot[:, 0:6] the
+        second derivatives."""
+        T = self.duration_s
+        s, ds, dds = quintic_blend((t_s - self.t0_s) / T)
+        if s == 1.0:
+            return self.target.offsets(t_s)
+        ha, ha_dot = self.source.offsets(t_s)
+        if s == 0.0:
+            return ha, ha_dot
+        hb, hb_dot = self.target.offsets(t_s)
+        ds, dds = ds / T, dds / (T * T)
+        value = (9, 10, 11, 6, 7, 8)  # p, eta: in the order of the derivatives in h[:, 0:6]
+        xa, xb = ha[:, value], hb[:, value]
+        d, d_d, d_dd = xb - xa, hb[:, 0:6] - ha[:, 0:6], hb_dot[:, 0:6] - ha_dot[:, 0:6]
+        x = xa + s * d
+        x_d = ha[:, 0:6] + s * d_d + ds * d
+        x_dd = ha_dot[:, 0:6] + s * d_dd + 2.0 * ds * d_d + dds * d
+        h = np.concatenate([x_d, x[:, 3:6], x[:, 0:3]], axis=1)
+        h_dot = np.concatenate([x_dd, x_d[:, 3:6], x_d[:, 0:3]], axis=1)
+        return h, h_dot
 
     def kinematics(self, t_s: float) -> Kinematics:
         T = self.duration_s

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -68,9 +69,11 @@ class Topology:
     def n_agents(self) -> int:
         return self.adjacency.shape[0]
 
-    @property
+    @cached_property
     def in_degree(self) -> np.ndarray:
-        return self.adjacency.sum(axis=1)
+        d = self.adjacency.sum(axis=1)
+        d.setflags(write=False)
+        return d
 
     @property
     def laplacian(self) -> np.ndarray:
