@@ -111,7 +111,7 @@ def plant_airframe(plan: Plan, config: SimConfig) -> Airframe:
 
 def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimResult:
     """Fly the plan from rest on the ground for ``config.duration_s``."""
-    design = plan.check(horizon_s=config.duration_s)
+    design = plan.check_formation(horizon_s=config.duration_s)
     n = plan.n_agents
     rate = plan.controller.rate_hz
     sub = int(round(config.physics_hz / rate))

@@ -131,9 +131,9 @@ def test_check_refuses_a_formation_pitched_past_the_controllers_limit(paper_spec
 def test_keyframe_plan(paper_spec):
     spec = copy.deepcopy(paper_spec)
     spec["formation"] = {"type": "keyframes", "keyframes": [
-        {"t_s": 0.0, "position_m": [[i * 2.0, 0.0, 10.0] for i in range(6)]},
-        {"t_s": 20.0, "position_m": [[0.0, i * 2.0, 12.0] for i in range(6)], "attitude_rad": [0.0, 0.0, 0.5]},
+        {"t_s": 0.0, "position_m": [[i * 3.0, 0.0, 10.0] for i in range(6)]},
+        {"t_s": 20.0, "position_m": [[0.0, i * 3.0, 12.0] for i in range(6)], "attitude_rad": [0.0, 0.0, 0.5]},
     ]}
     plan = plan_from_dict(spec, "k.toml")
     plan.check(horizon_s=30)
-    assert np.allclose(plan.formation.offsets(25.0)[0][:, 9:12], [[0.0, i * 2.0, 12.0] for i in range(6)])
+    assert np.allclose(plan.formation.offsets(25.0)[0][:, 9:12], [[0.0, i * 3.0, 12.0] for i in range(6)])

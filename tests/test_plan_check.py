@@ -50,10 +50,10 @@ def test_paper_plan_prints_c_and_the_eigenvalues():
     r = plan_check(PAPER_PLAN_FILE)
     assert r.returncode == 0, r.stderr
     assert r.stderr == ""
-    c = float(re.search(r"│ c\s+([0-9.e+-]+) = 1 / \(2 lambda_R\)", r.stdout).group(1))
+    c = float(re.search(r"│ c\s+([0-9.e+-]+) = 3 / \(2 lambda_R\)", r.stdout).group(1))
     assert c == pytest.approx(load_plan(str(PAPER_PLAN_FILE)).design.c, rel=1e-5)
     lambda_R = min(sorted_eigenvalues(M)[0].real for M in (TWO_CHAIN, TRIANGLES, REVERSE_TWO_CHAIN))
-    assert c == pytest.approx(1.0 / (2.0 * lambda_R), rel=1e-5)
+    assert c == pytest.approx(3.0 / (2.0 * lambda_R), rel=1e-5)
     row = re.search(r"│ two-chain\s+│\s+([0-9.]+) │ ([0-9., ]+?)\s+│", r.stdout)
     assert float(row.group(1)) == pytest.approx(1.0)
     printed = [float(x) for x in row.group(2).split(", ")]
@@ -81,7 +81,7 @@ def test_json_summary_has_the_eigenvalues_of_every_topology():
 
 
 POLYGON = 'radius_m = 10.0\naltitude_m = 20.0\nrate_rad_s = 1.0\nattitude_rad = "paper-alternating"\n'
-FAMILIES = 'families = ["two-chain", "triangles", "reverse-two-chain"]'
+FAMILIES = 'switch_period_s = 5.0\n'
 OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
 
 
@@ -92,7 +92,7 @@ OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}
     ([("Q_diag = [1.0, ", "Q_diag = [")], "design.Q_diag must have shape (12,)", None),
     ([('type = "rotating-polygon"', 'type = "spiral"')], "formation.type must be", None),
     ([("switch_period_s = 5.0", "switch_period_s = -5.0")], "topology.switch_period_s must be positive", None),
-    ([(FAMILIES, '[[topology.graphs]]\nname = "broken"\npinned = [1]\nedges = [[1, 2], [2, 3], [4, 5], [5, 6]]')],
+    ([(FAMILIES, FAMILIES + '[[topology.graphs]]\nname = "broken"\npinned = [1]\nedges = [[1, 2], [2, 3], [4, 5], [5, 6]]\n')],
      "[topology] topology broken violates Assumption 1", "agents 4, 5, 6"),
     ([('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")],
      "formation fails the feasibility condition (76)", "drone 3 position rows 10-12"),
