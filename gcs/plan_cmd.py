@@ -167,16 +167,17 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
     if approach is not None:
         i, j = approach.pair
         console.print(f"separation: drones {i + 1} and {j + 1} come closest, {approach.distance_m:.3g} m apart at "
-                      f"t = {approach.t_s:.4g} s (minimum {plan.check_settings.min_separation_m:g} m)")
+                      f"t = {approach.t_s:.4g} s (minimum {plan.check_settings.min_separation_m:g} m)", soft_wrap=True)
     if flight is None:
-        console.print(f"[yellow]{escape(plan.source)}: plan passes the checks; not flown in simulation (--no-simulate)[/]")
+        console.print(f"[yellow]{escape(plan.source)}: plan passes the checks; not flown in simulation (--no-simulate)[/]",
+                      soft_wrap=True)
         return
     p = flight.performance
     console.print(f"flown in simulation over [0, {flight.window_s[1]:g}] s in {flight.result.wall_s:.1f} s: worst over the "
                   f"settled window [{flight.window_s[0]:.3g} s, {flight.window_s[1]:g} s] {p.worst_position_m:.3g} m "
                   f"(drone {p.worst_position_drone}), {p.worst_attitude_rad:.3g} rad (drone {p.worst_attitude_drone}); "
-                  f"bounds {p.position_bound_m:g} m, {p.attitude_bound_rad:g} rad")
-    console.print(f"[green]{escape(plan.source)}: plan OK[/]")
+                  f"bounds {p.position_bound_m:g} m, {p.attitude_bound_rad:g} rad", soft_wrap=True)
+    console.print(f"[green]{escape(plan.source)}: plan OK[/]", soft_wrap=True)
 
 
 def _shown(n: int) -> list[int]:

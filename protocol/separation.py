@@ -30,8 +30,9 @@ class Approach:
 
 def closest_approach(motion: Callable[[float], tuple[np.ndarray, np.ndarray]], times_s: np.ndarray,
                      speed_bound_m_s: float, within_m: float) -> Approach | None:
-    """The closest approach of any two drones over ``times_s`` (evenly spaced), given their
-    positions [m] and velocities [m/s] (N, 3) each at a time, and a bound on every drone's speed.
+    """The closest approach of any two drones over ``times_s`` (evenly spaced; the earliest of
+    ties), given their positions [m] and velocities [m/s] (N, 3) each at a time, and a bound on
+    every drone's speed.
     Below ``within_m`` it is found to within the straight-line error above; farther pairs are only
     sampled. None for fewer than two drones."""
     times = np.asarray(times_s, dtype=float)
@@ -44,7 +45,7 @@ def closest_approach(motion: Callable[[float], tuple[np.ndarray, np.ndarray]], t
             return None
         tree = cKDTree(p)
         d, j = tree.query(p, k=2)
-        i = int(np.argmin(d[:, 1]))
+        i = int(np.flatnonzero(d[:, 1] <= d[:, 1].min() + TIE_M)[0])  # the lowest-numbered of ties
         best = _closer(best, float(d[i, 1]), i, int(j[i, 1]), float(t))
         pairs = tree.query_pairs(reach, output_type="ndarray")
         if not pairs.size or half == 0.0:
@@ -60,7 +61,12 @@ def closest_approach(motion: Callable[[float], tuple[np.ndarray, np.ndarray]], t
     return best
 
 
+TIE_M = 1e-6
+"""Distances within this of the closest so far count as ties, and the earliest of them is kept (in a
+rigid formation every sample ties)."""
+
+
 def _closer(best: Approach, d: float, i: int, j: int, t: float) -> Approach:
-    if d < best.distance_m:
+    if d < best.distance_m - TIE_M or (d < best.distance_m + TIE_M and t < best.t_s):
         return Approach(d, (min(i, j), max(i, j)), t)
     return best

@@ -7,8 +7,9 @@ Rules, for a rotating polygon (the only formation defined for any N):
   separation apart (chord 2 R sin(pi / N));
 * rate: scaled so that the tangential speed R w stays the plan's (the centripetal acceleration
   R w^2 then shrinks as R grows);
-* entry: the blend into the formation lasts sqrt(R_new / R) times longer, which keeps its peak
-  acceleration (about 5.8 D / T^2 for a quintic over a distance D that grows with R);
+* entry: the blend into the formation lasts sqrt(R_new / R) times longer (rounded up to 0.1 s),
+  which keeps its peak acceleration (about 5.8 D / T^2 for a quintic over a distance D that grows
+  with R);
 * topology: a plan that names its families keeps them (plan check refuses those the certificate
   cannot vouch for at the new size); one that names none gets ``graph.default_families(N)``.
 
@@ -57,5 +58,5 @@ def resized_spec(spec: dict, n_agents: int, min_separation_m: float, blend_s: fl
         formation["radius_m"] = needed
         formation["rate_rad_s"] = rate * radius / needed  # the same tangential speed
         if radius > 0:
-            out.setdefault("entry", {})["blend_s"] = blend_s * math.sqrt(needed / radius)
+            out.setdefault("entry", {})["blend_s"] = math.ceil(10.0 * blend_s * math.sqrt(needed / radius)) / 10.0
     return out
