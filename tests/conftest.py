@@ -16,10 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
 
 
-def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]]) -> Path:
-    """examples/paper-hexagon.toml with each (old, new) text replaced (each old must be there),
-    written as tmp_path/plan.toml."""
-    text = PAPER_PLAN_FILE.read_text()
+def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]], source: Path = PAPER_PLAN_FILE) -> Path:
+    """examples/paper-hexagon.toml (or ``source``) with each (old, new) text replaced (each old must
+    be there), written as tmp_path/plan.toml."""
+    text = source.read_text()
     for old, new in replace:
         assert old in text
         text = text.replace(old, new)

@@ -177,21 +177,12 @@ def refused(r, path):
     return lines[0]
 
 
-def large_swarm_variant(tmp_path, replace):
-    text = (ROOT / "examples" / "large-swarm.toml").read_text()
-    for old, new in replace:
-        assert old in text
-        text = text.replace(old, new)
-    path = tmp_path / "large.toml"
-    path.write_text(text)
-    return path
-
-
 def test_large_swarm_with_the_papers_families_is_refused(tmp_path):
     """Fifty drones switching between two chains 25 deep and the triangles: the certificate cannot
     vouch for it, so plan check refuses it before flying, saying by how much and what would do."""
-    path = large_swarm_variant(tmp_path, [('families = ["ring-tree", "ring-tree-left", "ring-tree-right"]',
-                                           'families = ["two-chain", "triangles", "reverse-two-chain"]')])
+    path = paper_plan_variant(tmp_path, [('families = ["ring-tree", "ring-tree-left", "ring-tree-right"]',
+                                          'families = ["two-chain", "triangles", "reverse-two-chain"]')],
+                              ROOT / "examples" / "large-swarm.toml")
     line = refused(plan_check(path), path)
     assert re.search(r"topology schedule cannot be certified: switching every 5 s between two-chain, triangles, "
                      r"reverse-two-chain lets the bound on the formation error grow [0-9.e+]+x per cycle; "
