@@ -41,6 +41,7 @@ netns-tools:
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
+	$(ONE_CORE) $(PY) tests/bench/bench_formations.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
