@@ -56,7 +56,8 @@ def _default_out(name: str) -> Path:
 @app.command()
 def sim(
     scenario: Annotated[str, typer.Option(help="Built-in scenario name or path to a plan TOML file.")] = "paper-hexagon",
-    duration: Annotated[float, typer.Option(help="Simulated time [s].")] = 50.0,
+    duration: Annotated[Optional[float], typer.Option(help="Simulated time [s] (default: the plan's duration_s, 60 s "
+                                                           "unless the plan says).")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<scenario>-<time>).")] = None,
     drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only; the circle grows "
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
@@ -94,6 +95,7 @@ def sim(
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(scenario, drones)
+        duration = plan.duration_s if duration is None else duration
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed)
         design = plan.check_formation(horizon_s=duration)
@@ -116,7 +118,7 @@ def sim(
         result = simulate(plan, config, progress=lambda t: bar.update(task, completed=t, t=t))
 
     pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
-    window = min(plan.settled_from_s, 0.5 * duration)
+    window = plan.settled_from_s if plan.settled_from_s < duration else 0.5 * duration
     perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window, position_bound_m=position_bound_m,
                           attitude_bound_rad=attitude_bound_rad)
     per_drone = []

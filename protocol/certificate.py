@@ -289,10 +289,11 @@ def _usable(theta: np.ndarray) -> tuple[float, float] | None:
 
 def _mu(theta: np.ndarray, M: np.ndarray) -> float:
     """The largest mu with Theta M + M^T Theta >= 2 mu Theta."""
-    if _is_diagonal(theta):
-        d = 1.0 / np.sqrt(np.diag(theta))
-        sym = 0.5 * (theta @ M + M.T @ theta) * np.outer(d, d)
-        return float(np.linalg.eigvalsh(0.5 * (sym + sym.T))[0])
+    if _is_diagonal(theta):  # Theta^-1/2 sym(Theta M) Theta^-1/2, in O(N^2) before the eigenvalues
+        t = np.diag(theta)
+        TM = t[:, None] * M
+        d = 1.0 / np.sqrt(t)
+        return float(np.linalg.eigvalsh(0.5 * (TM + TM.T) * np.outer(d, d))[0])
     return float(scipy.linalg.eigh(0.5 * (theta @ M + M.T @ theta), theta, eigvals_only=True)[0])
 
 
@@ -331,9 +332,11 @@ def _diagonal_candidates(Ms: Sequence[np.ndarray]):
                 yield f"common diagonal {r:g}^{what}", [np.diag(r ** common.astype(float))] * len(Ms)
 
 
-def _lyapunov_candidates(Ms: Sequence[np.ndarray]):
+def _lyapunov_candidates(Ms: Sequence[np.ndarray], wanted):
     """(name, [Theta_k]) from the Lyapunov equation of each M_k shifted by a share of its lambda_R
-    (family (a))."""
+    (family (a)), while ``wanted()``."""
+    if not wanted():
+        return
     lam_R = [float(np.linalg.eigvals(M).real.min()) for M in Ms]
     for share in LYAPUNOV_SHARES:
         thetas = [_lyapunov_theta(M, share * lam) for M, lam in zip(Ms, lam_R)]
@@ -359,9 +362,11 @@ def certify(loop: LoopMatrices, c: float, Ms: Sequence[np.ndarray], period_s: fl
         return beta_of[mu]
 
     bounds: list[Bound] = []
-    for name, thetas in itertools.chain(_diagonal_candidates(Ms), _lyapunov_candidates(Ms)):
-        if name.startswith("Lyapunov") and (n > LYAPUNOV_MAX_AGENTS or any(b.any_switching for b in bounds)):
-            break  # family (a) costs O(N^3) per topology; it cannot beat a bound for any switching
+
+    def lyapunov_wanted() -> bool:  # family (a) costs O(N^3) per topology; it cannot beat a bound for any switching
+        return n <= LYAPUNOV_MAX_AGENTS and not any(b.any_switching for b in bounds)
+
+    for name, thetas in itertools.chain(_diagonal_candidates(Ms), _lyapunov_candidates(Ms, lyapunov_wanted)):
         eig = [_usable(t) for t in thetas]
         if any(e is None for e in eig):
             continue
