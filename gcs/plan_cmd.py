@@ -32,6 +32,7 @@ plan_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_m
 @plan_app.command("check")
 def check(
     file: Annotated[str, typer.Argument(help="Plan TOML file (or a built-in scenario name).")],
+    drones: Annotated[Optional[int], typer.Option(help="Resize the plan to N drones first, as `sim --drones` does.")] = None,
     horizon_s: Annotated[Optional[float], typer.Option("--horizon-s", help="Check and fly over [0, S] s (default: the plan's "
                                                                            "duration_s, 60 s unless it says).")] = None,
     no_simulate: Annotated[bool, typer.Option("--no-simulate", help="Skip the flight in simulation (then the plan is "
@@ -58,7 +59,9 @@ def check(
                             ("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise UserError(f"--{name} must be a positive number, got {value}")
-        plan = load_plan(file)
+        if drones is not None and drones < 1:
+            raise UserError(f"--drones must be at least 1, got {drones}")
+        plan = load_plan(file, drones)
         changes = {k: v for k, v in (("min_separation_m", min_separation_m), ("position_bound_m", position_bound_m),
                                      ("attitude_bound_rad", attitude_bound_rad)) if v is not None}
         if changes:

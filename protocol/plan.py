@@ -57,8 +57,8 @@ DEFAULT_COUPLING_MARGIN = 2.25
 """c = 2.25 / (2 lambda_R), measured (docs/formations.md): the certificate vouches for the case study
 (its switching needs 2.5 s between switches; it switches every 5 s) and for the ring trees at any N,
 which margin 1 cannot; the case study keeps its bounds with noise, mismatch and servo delays up to
-20 ms; and a 100 Hz controller still flies it (from a margin of 2.5 it does not: c |lambda| of the
-triangles graph reaches 5.9)."""
+20 ms; and a 100 Hz controller still flies it (from a margin of 2.5, where c |lambda| of the
+triangles graph reaches 6.2, it does not)."""
 DEFAULT_DURATION_S = 60.0
 MIN_SETTLED_WINDOW_S = 20.0
 """A plan that gives no duration_s lasts 60 s, or longer (whole seconds) so that its settled window
