@@ -375,14 +375,3 @@ def certify(loop: LoopMatrices, c: float, Ms: Sequence[np.ndarray], period_s: fl
         bounds.append(Bound(name, float(period_s), mu, np.array([beta(x) for x in mu]), rho,
                             np.array([e[1] for e in eig]), np.array([e[0] for e in eig]), cond_P))
     return Certificate(names, float(period_s), float(c), tuple(bounds))
-
-
-def monodromy_spectral_radius(loop: LoopMatrices, c: float, Ms: Sequence[np.ndarray], period_s: float) -> float:
-    """Exact growth of the nominal switched error system per cycle: the spectral radius of
-    prod_k expm((I (x) A - c M_k (x) B K) T). For checking the certificate (12 N states: small N)."""
-    BK = loop.B @ loop.K
-    n = Ms[0].shape[0]
-    Phi = np.eye(n * loop.A.shape[0])
-    for M in Ms:
-        Phi = scipy.linalg.expm((np.kron(np.eye(n), loop.A) - c * np.kron(M, BK)) * period_s) @ Phi
-    return float(np.abs(np.linalg.eigvals(Phi)).max())
