@@ -27,41 +27,64 @@ REBOOT_JUMP_MS = 1000
 
 
 class FcClock:
+    """Kept in whole microseconds: Unix times near 1.8e9 s hold no better than a quarter of a
+    microsecond in a float, so plan times computed from them would differ in their last bits from
+    one run to the next (and two lockstep runs would not be the same)."""
+
     def __init__(self) -> None:
-        self.offset_s: float | None = None
-        """Unix time minus the flight controller's boot time [s] (from SYSTEM_TIME)."""
+        self.offset_us: int | None = None
+        """Unix time minus the flight controller's boot time [us] (from SYSTEM_TIME)."""
         self.boot_ms: int | None = None
         """The newest sample's flight-controller time [ms since its boot]."""
         self._waiters: list = []
         self._order = itertools.count()
 
+    @property
+    def known(self) -> bool:
+        return self.offset_us is not None
+
+    def set_offset(self, time_unix_usec: int, time_boot_ms: int) -> None:
+        """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]."""
+        self.offset_us = int(time_unix_usec) - int(time_boot_ms) * 1000
+
     def unix(self, boot_ms: int) -> float:
         """A flight-controller time as Unix time (the wall clock until SYSTEM_TIME was heard)."""
-        return time.time() if self.offset_s is None else self.offset_s + boot_ms / 1000.0
+        return time.time() if self.offset_us is None else (self.offset_us + boot_ms * 1000) / 1e6
 
     def now(self) -> float:
         """The flight controller's time now, as Unix time: that of its newest sample."""
-        if self.offset_s is None or self.boot_ms is None:
+        if self.offset_us is None or self.boot_ms is None:
             return time.time()
-        return self.offset_s + self.boot_ms / 1000.0
+        return (self.offset_us + self.boot_ms * 1000) / 1e6
+
+    def plan_time(self, boot_ms: int, start_unix_s: float) -> float:
+        """A flight-controller time as plan time: seconds since ``start_unix_s``, exactly."""
+        if self.offset_us is None:
+            return time.time() - start_unix_s
+        return (self.offset_us + boot_ms * 1000 - round(start_unix_s * 1e6)) / 1e6
+
+    def _now_us(self) -> int | None:
+        return None if self.offset_us is None or self.boot_ms is None else self.offset_us + self.boot_ms * 1000
 
     def advance(self, boot_ms: int) -> None:
         """A sample of time ``boot_ms`` came: wake whoever waits for that time."""
         self.boot_ms = boot_ms
-        if self.offset_s is None:
+        now_us = self._now_us()
+        if now_us is None:
             return
-        now = self.now()
-        while self._waiters and self._waiters[0][0] <= now:
+        while self._waiters and self._waiters[0][0] <= now_us:
             fut = heapq.heappop(self._waiters)[2]
             if not fut.done():
                 fut.set_result(None)
 
     async def until(self, t_unix: float) -> None:
         """Wait until the flight controller's clock reaches ``t_unix``."""
-        if self.offset_s is not None and self.boot_ms is not None and self.now() >= t_unix:
+        t_us = round(t_unix * 1e6)
+        now_us = self._now_us()
+        if now_us is not None and now_us >= t_us:
             return
         fut = asyncio.get_running_loop().create_future()
-        heapq.heappush(self._waiters, (t_unix, next(self._order), fut))
+        heapq.heappush(self._waiters, (t_us, next(self._order), fut))
         await fut
 
 

@@ -596,7 +596,7 @@ class Companion:
                                     local_ned_to_paper(msg.x, msg.y, msg.z), local_ned_to_paper(msg.vx, msg.vy, msg.vz)))
         elif t == "SYSTEM_TIME":
             if msg.time_unix_usec > 0:
-                self.clock.offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+                self.clock.set_offset(msg.time_unix_usec, msg.time_boot_ms)
         elif t == "EXTENDED_SYS_STATE":
             fc.landed = msg.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
         elif t == "COMMAND_ACK":
@@ -649,7 +649,7 @@ class Companion:
                            (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
             await self.fc_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
         await self.fc_command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)
-        while self.clock.offset_s is None:
+        while not self.clock.known:
             await asyncio.sleep(0.05)
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,
         # which would otherwise stall the loop for tens of milliseconds at a time.
@@ -697,7 +697,7 @@ class Companion:
     async def _start_when_due(self) -> None:
         m = self.mission
         try:
-            while self.clock.offset_s is None or self.fc.max_rpm is None:  # setup_fc is still running
+            while not self.clock.known or self.fc.max_rpm is None:  # setup_fc is still running
                 await asyncio.sleep(0.05)
             if self.opts.autostart:  # (a start command has its answer already)
                 self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
@@ -717,7 +717,7 @@ class Companion:
                 if result != mavlink.MAV_RESULT_ACCEPTED:
                     raise RuntimeError(f"the flight controller refused external control ({result})")
                 self.fc.mode = CustomMode.EXTERNAL
-            self._begin_entry(max(m.start_unix_s, self.fc_unix(self._last_sample.boot_ms)))
+            self._begin_entry(max(0.0, self._plan_time(self._last_sample)))
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
@@ -746,15 +746,16 @@ class Companion:
         R = model.rotation_body_to_earth(s.eta)
         return np.concatenate([R.T @ s.velocity_e, s.rates, s.eta, s.position])
 
-    def _begin_entry(self, t0_unix: float) -> None:
-        """Take off from where the drone rests and enter the formation (the plan's entry)."""
+    def _begin_entry(self, t0_s: float) -> None:
+        """Take off from where the drone rests and enter the formation (the plan's entry) from plan
+        time ``t0_s``."""
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         m = self.mission
         m.phase = "flying"
         self.store.save(m)
         start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self._flying = self._tracking = self.plan.entry_formation(start, t0_unix - m.start_unix_s, self.formation)
+        self._flying = self._tracking = self.plan.entry_formation(start, t0_s, self.formation)
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -764,8 +765,7 @@ class Companion:
         if not self.fc.armed or self.fc.landed:
             if not self.fc.armed:
                 await self._arm()
-            t0 = self.fc_unix(self._last_sample.boot_ms) + 1.0
-            self._begin_entry(t0)
+            self._begin_entry(self._plan_time(self._last_sample) + 1.0)
             return
         x = self._current_state()
         self.ctrl.reset(x[None, :])
@@ -817,7 +817,7 @@ class Companion:
             self.bus.publish_status(PHASE_STATUS[self.phase], self._phase_reason, self._phase_since)
 
     def _plan_time(self, s: Sample) -> float:
-        return self.fc_unix(s.boot_ms) - self.mission.start_unix_s
+        return self.clock.plan_time(s.boot_ms, self.mission.start_unix_s)
 
     # -- the tick -----------------------------------------------------------------------------
 

@@ -191,6 +191,9 @@ def sitl_up(
     spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
     stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
     duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    param: Annotated[Optional[list[str]], typer.Option("--param", metavar="NAME=VALUE",
+                                                       help="A parameter every vehicle starts with, e.g. "
+                                                            "NOISE_POS_M=0.02 (repeat).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Step the clock when every vehicle's companion has answered, not with "
                                                 "the wall clock: as fast as the machine allows, the same however busy "
                                                 "it is. The clock starts when every companion answers.")] = False,
@@ -218,9 +221,16 @@ def sitl_up(
             raise UserError(f"--first-id {first_id} with {n} vehicles leaves system ids outside 1..255")
         if not 0 <= base_port <= 65535 - 2 * n:
             raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
+        params = []
+        for item in param or []:
+            name, _, value = item.partition("=")
+            try:
+                params.append((name.strip().upper(), float(value)))
+            except ValueError:
+                raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
-                           lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
+                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)
