@@ -525,6 +525,8 @@ class Companion:
         self.bus.open(self._zenoh(plan.n_agents), loop)
         self._design = plan.design
         self._in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in plan.schedule.topologies}
+        self._in_weights = {t.name: [(j, float(t.adjacency[i, j - 1])) for j in self._in_neighbours[t.name]]
+                            for t in plan.schedule.topologies}
         self._paths: dict[tuple, bool] = {}
         self._presence_base = None
         self.ctrl = FormationController(self._design, 1, self.opts.rate_hz,
@@ -955,15 +957,16 @@ class Companion:
             self._start_hold(w.t_plan, w.xhat[0], f"no path to the leader in {topo.name}")
             self._hold_step(w.sample, w.xhat, w.t_plan)
             return
-        used = [j for j in self._in_neighbours[topo.name] if present[j - 1] and bus.neighbours[j].heard]
-        weights = topo.adjacency[i, [j - 1 for j in used]]
         nsum = np.zeros(12)
+        weight = 0.0
         now = time.time()
-        for w_ij, j in zip(weights, used):
+        for j, w_ij in self._in_weights[topo.name]:
             nb = bus.neighbours[j]
-            nsum += w_ij * nb.xi
-            self.health.neighbour_age[j].add(now - nb.stamp_s)
-        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weights.sum()]),
+            if present[j - 1] and nb.heard:
+                nsum += w_ij * nb.xi
+                weight += w_ij
+                self.health.neighbour_age[j].add(now - nb.stamp_s)
+        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weight]),
                            topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
         self._actuate(v, w.sample)
         if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
