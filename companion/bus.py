@@ -2,14 +2,17 @@
 
 Transport: every session has a TCP and a UDP link to each peer (``transport/unicast/max_links`` 2).
 Estimates are published best effort (express, dropped under congestion) and so ride UDP: a lost
-estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission.
+estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission. In
+lockstep (``reliable_estimates``) every estimate is awaited, so they are published reliably (TCP).
 Declarations, liveliness, status and health are reliable and ride TCP.
 
 Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
 thread, tags the payload with the agent whose key it came on and appends it to an inbox (a deque,
 the newest 256 kept); while the loop waits for its neighbours it also rings a doorbell (a local
 datagram socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment
-it arrives and the others cost no wake-up at all. Decoding, validation and counting all happen in
+it arrives and the others cost no wake-up at all. An estimate of an agent of the same process is
+delivered in the publisher's call, on the loop's own thread: that one is taken at the loop's next
+turn, with no doorbell. Decoding, validation and counting all happen in
 the loop. Liveliness and status change rarely: ring channels the loop drains at every tick.
 """
 
@@ -20,6 +23,7 @@ import json
 import math
 import os
 import socket
+import threading
 import time
 from collections.abc import Callable
 from collections import Counter, deque
@@ -40,12 +44,14 @@ DEFAULT_ZENOH_BASE_PORT = 17447
 INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
 
 
-def default_config(agent: int, n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
+def default_config(agents: int | frozenset[int], n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
                    host: str = "127.0.0.1") -> zenoh.Config:
     """Peers on one machine, no router, no multicast: agent i listens on TCP and UDP port
-    base + i and connects to every other agent's."""
-    listen = [f"tcp/{host}:{base_port + agent}", f"udp/{host}:{base_port + agent}"]
-    connect = [f"{proto}/{host}:{base_port + j}" for j in range(1, n_agents + 1) if j != agent
+    base + i and connects to every other agent's. A process of several agents listens on each of
+    theirs and connects to the others'."""
+    mine = frozenset({agents}) if isinstance(agents, int) else agents
+    listen = [f"{proto}/{host}:{base_port + i}" for i in sorted(mine) for proto in ("tcp", "udp")]
+    connect = [f"{proto}/{host}:{base_port + j}" for j in range(1, n_agents + 1) if j not in mine
                for proto in ("tcp", "udp")]
     return peer_config(listen, connect)
 
@@ -101,6 +107,10 @@ class Bus:
     statuses: dict[int, AgentStatus] = field(default_factory=dict)
     on_estimate: Callable[[], None] | None = None
     """Called (in the loop) after new neighbour estimates were taken in."""
+    changes: int = 0
+    """Counts the changes of ``alive`` and ``statuses`` (a reader caches what it derives from them)."""
+    reliable: bool = False
+    """Publish estimates reliably (lockstep: a lost one would stall the swarm's clock)."""
     previous_plan_id: int | None = None
     """After a plan change in flight, the plan before it: its estimates still count (neighbours
     switch within a tick of each other, and their estimates stay continuous through it)."""
@@ -108,7 +118,9 @@ class Bus:
     def switch_plan(self, plan_id: int) -> None:
         self.previous_plan_id, self.plan_id = self.plan_id, plan_id
 
-    def open(self, config: zenoh.Config, loop: asyncio.AbstractEventLoop) -> None:
+    def open(self, config: zenoh.Config | zenoh.Session, loop: asyncio.AbstractEventLoop) -> None:
+        """Open a session with ``config``, or declare this agent's keys on a session of the process
+        (several agents in one process share it; its owner closes it)."""
         self.loop = loop
         self._inbox: deque[bytes] = deque(maxlen=INBOX_SIZE)
         self._doorbell, self._bell = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -116,11 +128,12 @@ class Bus:
             sock.setblocking(False)
         self.waiting = False
         """Set by the loop while it waits for estimates: the callbacks then ring the doorbell."""
-        self.session = zenoh.open(config)
+        self._loop_thread = threading.get_ident()
+        self._called = False
+        self._own_session = not isinstance(config, zenoh.Session)
+        self.session = zenoh.open(config) if self._own_session else config
         s = self.session
-        self._pub_estimate = s.declare_publisher(estimate_key(self.swarm, self.agent), express=True,
-                                                 reliability=zenoh.Reliability.BEST_EFFORT,
-                                                 congestion_control=zenoh.CongestionControl.DROP)
+        self._declare_estimate_publisher()
         self._pub_status = s.declare_publisher(status_key(self.swarm, self.agent))
         self._pub_health = s.declare_publisher(health_key(self.swarm, self.agent))
         self._token = s.liveliness().declare_token(alive_key(self.swarm, self.agent))
@@ -137,6 +150,22 @@ class Bus:
         self.seq = 0
         loop.add_reader(self._doorbell.fileno(), self._answer_door)
 
+    def _declare_estimate_publisher(self) -> None:
+        reliable = self.reliable
+        self._pub_estimate = self.session.declare_publisher(
+            estimate_key(self.swarm, self.agent), express=True,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP)
+
+    def reliable_estimates(self) -> None:
+        """From now on publish estimates reliably."""
+        if self.reliable:
+            return
+        self.reliable = True
+        if "session" in self.__dict__:
+            self._pub_estimate.undeclare()
+            self._declare_estimate_publisher()
+
     def _handover(self, agent: int) -> Callable:
         """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
         and ring if the loop is waiting. (Appending before looking at ``waiting``, while the loop
@@ -146,12 +175,21 @@ class Bus:
         def handover(sample) -> None:
             append(tag + sample.payload.to_bytes())
             if self.waiting:
+                if threading.get_ident() == self._loop_thread:  # (an agent of this process published)
+                    if not self._called:
+                        self._called = True
+                        self.loop.call_soon(self._take_now)
+                    return
                 try:
                     ring(b"!")
                 except OSError:  # the doorbell's buffer is full: the loop is awake anyway
                     pass
 
         return handover
+
+    def _take_now(self) -> None:
+        self._called = False
+        self.take_estimates()
 
     def _answer_door(self) -> None:
         try:
@@ -169,7 +207,10 @@ class Bus:
         for sub in self._subs:
             sub.undeclare()
         self._token.undeclare()
-        session.close()
+        for pub in (self._pub_estimate, self._pub_status, self._pub_health):
+            pub.undeclare()
+        if self._own_session:
+            session.close()
         try:
             self.loop.remove_reader(self._doorbell.fileno())
         except (RuntimeError, ValueError):
@@ -258,8 +299,9 @@ class Bus:
         except (ValueError, KeyError, TypeError):
             self.counters["drop_bad_status"] += 1
             return
-        if msg.get("plan") in (self.plan_id, self.previous_plan_id):
+        if msg.get("plan") in (self.plan_id, self.previous_plan_id) and self.statuses.get(agent) != status:
             self.statuses[agent] = status
+            self.changes += 1
 
     def _alive(self, key: str, present: bool) -> None:
         agent = agent_of_key(key)
@@ -271,6 +313,7 @@ class Bus:
         elif agent != self.agent:
             self.alive.discard(agent)
             self.statuses.pop(agent, None)
+        self.changes += 1
 
     # -- outgoing ----------------------------------------------------------------------------
 

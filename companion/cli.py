@@ -21,10 +21,12 @@ app = typer.Typer(add_completion=False, rich_markup_mode=None)
 @app.command()
 def companion(
     ctx: typer.Context,
-    id: Annotated[Optional[int], typer.Option("--id", help="This drone's number in the swarm (its MAVLink system id).")] = None,
-    fc: Annotated[Optional[str], typer.Option(help="Flight-controller link (pymavlink connection string, or a serial "
-                                                   "port DEVICE:BAUD).")] = None,
-    gcs: Annotated[Optional[str], typer.Option(help="Ground-station link (pymavlink connection string).")] = None,
+    id: Annotated[Optional[list[int]], typer.Option("--id", metavar="N", help="This drone's number in the swarm (its MAVLink system "
+                                                                 "id). Repeat, with --fc and --gcs for each, to fly "
+                                                                 "several simulated drones in this process.")] = None,
+    fc: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Flight-controller link (pymavlink connection string, or a serial "
+                                                         "port DEVICE:BAUD).")] = None,
+    gcs: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Ground-station link (pymavlink connection string).")] = None,
     plan: Annotated[Optional[Path], typer.Option(help="Plan file (TOML).")] = None,
     autostart: Annotated[bool, typer.Option(help="Arm, take off and start the plan at the common start time.")] = False,
     start_at: Annotated[Optional[float], typer.Option(help="Common start time [s since the Unix epoch] "
@@ -36,9 +38,11 @@ def companion(
     zenoh_mode: Annotated[str, typer.Option(help="Zenoh mode with --zenoh-listen/--zenoh-connect: peer or client.")] = "peer",
     zenoh_base_port: Annotated[int, typer.Option(help="Default peers on loopback: agent i uses TCP and UDP port base+i.")] = 17447,
     rate_hz: Annotated[float, typer.Option(help="Control rate [Hz] (the telemetry rate it asks for).")] = 200.0,
-    state_dir: Annotated[Optional[Path], typer.Option(help="Keep the plan and mission here, to resume after a restart.")] = None,
+    state_dir: Annotated[Optional[Path], typer.Option(help="Keep the plan and mission here, to resume after a restart "
+                                                           "({id} in the path: the drone's number).")] = None,
     swarm: Annotated[Optional[str], typer.Option(help="Swarm name in the Zenoh key space (default: the plan's name).")] = None,
-    stats: Annotated[Optional[Path], typer.Option(help="Write loop statistics here at exit (JSON).")] = None,
+    stats: Annotated[Optional[Path], typer.Option(help="Write loop statistics here at exit (JSON; {id} in the path: the "
+                                                       "drone's number).")] = None,
     signing_key: Annotated[Optional[Path], typer.Option(help="MAVLink 2 signing key file (32 bytes, or 64 hex digits): "
                                                              "sign the ground-station link and refuse its unsigned "
                                                              "commands, plans and parameter changes.")] = None,
@@ -49,12 +53,25 @@ def companion(
                                              "Zenoh, the signing key and the state folder, one line each; exit 0 or 1.")] = False,
 ) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
-    from .config import explicit_options, resolve_options, run_checks
+    from .config import explicit_options, link_url, resolve_options, run_checks
 
+    agents = [(i, f, g) for i, f, g in zip(id or [], fc or [], gcs or [])]
+    params = dict(ctx.params, id=(id or [None])[0], fc=(fc or [None])[0], gcs=(gcs or [None])[0])
     if check:
-        raise typer.Exit(code=run_checks(config, ctx.params, explicit_options(ctx)))
+        raise typer.Exit(code=run_checks(config, params, explicit_options(ctx)))
     try:
-        o = resolve_options(config, ctx.params, explicit_options(ctx))
+        if len(id or []) > 1 or len(fc or []) > 1 or len(gcs or []) > 1:
+            if not len(id or []) == len(fc or []) == len(gcs or []):
+                raise ValueError("several drones need one --fc and one --gcs for each --id, in the same order")
+            if config is not None:
+                raise ValueError("--config describes one drone: give several drones their options on the command line")
+            if len({i for i, _, _ in agents}) != len(agents):
+                raise ValueError("every --id must be a different drone")
+        o = resolve_options(config, params, explicit_options(ctx))
+        agents = [(i, link_url(f, "fc"), link_url(g, "gcs")) for i, f, g in agents[1:]]
+        for i, _, _ in agents:
+            if not 1 <= i <= 255:
+                raise ValueError(f"--id must be a MAVLink system id between 1 and 255, got {i}")
     except ValueError as exc:
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
@@ -62,31 +79,33 @@ def companion(
     zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
     zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
     swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
-    from .companion import Companion, CompanionOptions, write_stats
+    from .companion import CompanionOptions, write_stats
+    from .host import agent_options, run_agents
 
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s companion {id}: %(message)s")
+                        format="%(asctime)s %(message)s")
     try:
         opts = CompanionOptions(agent=id, fc_url=fc, gcs_url=gcs, plan_path=plan, autostart=autostart,
                                 start_at_unix_s=start_at, zenoh_config=zenoh_config,
                                 zenoh_listen=tuple(zenoh_listen or ()), zenoh_connect=tuple(zenoh_connect or ()),
                                 zenoh_mode=zenoh_mode, zenoh_base_port=zenoh_base_port, rate_hz=rate_hz,
                                 state_dir=state_dir, swarm=swarm, stats_path=stats, signing_key_path=signing_key)
-        comp = Companion(opts)
+        every = agent_options(opts, [(id, fc, gcs), *agents])
 
-        async def main() -> dict:
+        async def main() -> list[dict]:
             stop = asyncio.Event()
             loop = asyncio.get_running_loop()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
-            return await comp.run(stop)
+            return await run_agents(every, stop)
 
-        result = asyncio.run(main())
+        results = asyncio.run(main())
     except (PlanError, ParameterError, GraphError, ValueError, OSError) as exc:
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
-    if stats is not None:
-        write_stats(stats, result)
+    for o, result in zip(every, results):
+        if o.stats_path is not None:
+            write_stats(o.stats_path, result)
 
 
 def main() -> None:

@@ -7,13 +7,17 @@ reader callback:
     1. observe y and predict the state to t_p = t + servo delay (the same FormationController
        as the in-process simulation);
     2. publish xi_i = xhat_i - h_i(t_p) on Zenoh;
-    3. wait (at most ``NB_WAIT_MS``) for the in-neighbours' estimates for the same t_p (the loop
-       is free meanwhile; an arriving estimate wakes it);
+    3. wait (at most ``NB_WAIT_MS``; in lockstep until they come) for the in-neighbours'
+       estimates for the same t_p (the loop is free meanwhile; an arriving estimate wakes it);
     4. check that a path from the leader remains through the agents that are alive, flying and
        fresh; if not, brake to a hold (and say so) until one returns, then rejoin;
     5. protocol (72) with the neighbours it has, RFL (49), SET_ACTUATOR_CONTROL_TARGET.
 
-Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time.
+Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time, and
+every wait and timeout of the mission runs on that clock (``clock.py``), so the same code flies on a
+simulator's clock in lockstep. There the simulator steps on when the companion has answered each
+state, and the wait for neighbours has no wall-clock deadline: only a watchdog of NB_WATCHDOG_S of
+wall time counts a neighbour that has stopped publishing (a dead or hung process) as absent.
 
 With a signing key (``--signing-key``), the ground-station link signs every frame the companion
 sends and checks every frame it receives (MAVLink 2 signing, ``protocol.mavlink.setup_signing``).
@@ -57,12 +61,21 @@ from triswarm.protocol.plan import (Plan, PlanError, actuator_demand, in_flight_
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
 
 from .bus import Bus, default_config, tune
+from .clock import NO_COMMAND, REBOOT_JUMP_MS, Answers, FcClock
 from .health import LoopHealth
 from .links import MavLink, Router
 from .plan_server import PlanServer
 from .state import Mission, StateStore
 
 log = logging.getLogger("triswarm.companion")
+
+
+class AgentLog(logging.LoggerAdapter):
+    """The companion's log, each line naming its agent (several agents may share a process)."""
+
+    def process(self, msg, kwargs):
+        prefix = f"companion {self.extra['agent']}: "
+        return (msg if str(msg).startswith(prefix) else prefix + str(msg)), kwargs
 
 ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
@@ -72,6 +85,8 @@ WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m
 LEADER_LATE_S = 2.0  # a leader command may arrive this late for its plan time (the move starts slow)
 MOVE_CHECK_STEP_S = 0.05  # a leader move is checked against the airframe's limits this often [s],
 MOVE_CHECK_SAMPLES = 100  # or at this many instants over a long move
+LOCKSTEP_RECHECK_S = 0.1  # lockstep: while waiting for neighbours, look at who is alive this often [s, wall]
+NB_WATCHDOG_S = 3.0  # lockstep: a live neighbour with no estimate for this long has hung [s, wall]
 HIGH_RATE = {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
              mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
              mavlink.MAVLINK_MSG_ID_HIGHRES_IMU}
@@ -122,14 +137,24 @@ class ParamSpec:
     read_only: bool = False
 
 
+_PLANS: dict[tuple, Plan] = {}
+
+
 def load_plan_file(path: Path) -> Plan:
+    """The plan in a file. The agents of one process that fly the same file share one ``Plan`` (its
+    design is computed once, its formation evaluated once per instant for all of them)."""
     try:
+        st = Path(path).stat()
+        key = (str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+        if key in _PLANS:
+            return _PLANS[key]
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise PlanError(f"{path}: no such plan file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise PlanError(f"{path}: cannot read the plan file ({exc.__class__.__name__})") from None
-    return plan_from_dict(spec_from_toml(text, str(path)), str(path))
+    plan = _PLANS[key] = plan_from_dict(spec_from_toml(text, str(path)), str(path))
+    return plan
 
 
 def leader_with_moves(leader: Formation, moves: list[dict]) -> Formation:
@@ -159,6 +184,7 @@ class _Waiting:
     topo: Topology
     expected: list[int]
     t_plan: float
+    since_wall: float = 0.0
 
 
 @dataclass
@@ -167,22 +193,45 @@ class FcState:
     armed: bool = False
     mode: int = 0
     landed: bool = True
-    clock_offset_s: float | None = None  # unix time - boot time (from SYSTEM_TIME)
     max_rpm: float | None = None
     servo_deg: float | None = None
     att: tuple | None = None             # (boot_ms, eta, rates)
     pending: dict = field(default_factory=dict)
 
 
+def zenoh_config(o: CompanionOptions, agents: frozenset[int], n_agents: int):
+    """The Zenoh configuration of a process flying ``agents``: the file, the endpoints given, or
+    peers on loopback (``bus.default_config``)."""
+    import zenoh
+
+    if o.zenoh_config is not None:
+        try:
+            return tune(zenoh.Config.from_file(str(o.zenoh_config)))
+        except Exception as exc:  # zenoh raises its own error type for a bad file
+            raise PlanError(f"{o.zenoh_config}: not a usable Zenoh configuration ({exc})") from None
+    if o.zenoh_listen or o.zenoh_connect:
+        from .bus import peer_config
+
+        return peer_config(list(o.zenoh_listen), list(o.zenoh_connect), o.zenoh_mode)
+    return default_config(agents, n_agents, o.zenoh_base_port)
+
+
 class Companion:
-    def __init__(self, opts: CompanionOptions) -> None:
+    def __init__(self, opts: CompanionOptions, shared_zenoh=None) -> None:
+        """``shared_zenoh``: the process's ``host.SharedZenoh`` when several agents share one."""
         self.opts = opts
+        self.shared_zenoh = shared_zenoh
         self.agent = opts.agent
+        self.log = AgentLog(log, {"agent": opts.agent})
         self.signing_key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
         self._refusals_told: Counter[str] = Counter()
         self._signing_kept: dict[str, int] = {}  # the signing streams as last saved
         self.store = StateStore(opts.state_dir)
         self.fc = FcState()
+        self.clock = FcClock()
+        self.answers = Answers(lambda frame: self.fc_link.write(frame))
+        self._silent: set[int] = set()  # lockstep: neighbours the watchdog counts absent until they publish
+        self._presence_base: tuple | None = None
         self.health = LoopHealth(1.0 / opts.rate_hz)
         self.params = {
             "CTRL_RATE_HZ": ParamSpec(opts.rate_hz, 1.0, 2000.0, read_only=True),  # control (telemetry) rate
@@ -195,7 +244,7 @@ class Companion:
         }
         self.values = {k: p.default for k, p in self.params.items()}
         self.phase = Phase.IDLE
-        self._phase_reason, self._phase_since = "", time.time()  # why and since when [Unix s] (holding: why)
+        self._phase_reason, self._phase_since = "", time.time()  # why and since when [Unix s, the fc's clock]
         self.mission: Mission | None = None
         self.plan: Plan | None = None
         self.leader: Formation | None = None  # the plan's leader x0 with the operator's moves
@@ -223,7 +272,7 @@ class Companion:
         over any plan file in the middle of a flight (the plan may have changed in the air)."""
         saved = self.store.load()
         if self.store.problem:
-            log.warning(self.store.problem)
+            self.log.warning(self.store.problem)
         plan_file = load_plan_file(self.opts.plan_path) if self.opts.plan_path else None
         if saved is not None and saved.agent == self.agent and (plan_file is None or saved.phase == "flying"
                                                                 or plan_id(plan_file.spec) == saved.plan_id):
@@ -292,7 +341,7 @@ class Companion:
         m = self.mission
         if m is not None and m.plan_id == pid and m.start_unix_s == start_unix_s and m.phase != "done":
             return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry of the same command
-        if not (math.isfinite(start_unix_s) and start_unix_s > time.time() - 1.0):
+        if not (math.isfinite(start_unix_s) and start_unix_s > self.clock.now() - 1.0):
             return mavlink.MAV_RESULT_DENIED, "plan start refused: the start time has passed"
         if self.staged is not None and self.staged[1] == pid:
             plan = self.staged[0]
@@ -364,7 +413,7 @@ class Companion:
         if m is None or m.start_unix_s is None:
             return mavlink.MAV_RESULT_DENIED, "leader command refused: no plan in force"
         at_s = float(msg.param3)
-        if not (math.isfinite(at_s) and at_s >= time.time() - m.start_unix_s - LEADER_LATE_S):
+        if not (math.isfinite(at_s) and at_s >= self.clock.now() - m.start_unix_s - LEADER_LATE_S):
             return mavlink.MAV_RESULT_DENIED, f"leader command refused: plan time {at_s:.2f} s has passed"
         if msg.command == mavlink.MAV_CMD_TRISWARM_LEADER_GOTO:
             if msg.get_type() == "COMMAND_INT":
@@ -447,11 +496,11 @@ class Companion:
         old, as the specification allows)."""
         saved = self.store.load_signing_streams()
         if self.store.problem:
-            log.warning(self.store.problem)
+            self.log.warning(self.store.problem)
             self.store.problem = None
         taken = self.gcs_link.codec.signing.restore(saved)
         if taken:
-            log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
+            self.log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
         self._signing_kept = self.gcs_link.codec.signing.streams()
 
     def _keep_signing_streams(self) -> None:
@@ -464,19 +513,22 @@ class Companion:
                 self.store.save_signing_streams(streams)
                 self._signing_kept = streams
             except OSError as exc:
-                log.warning(f"signing streams not saved: {exc}")
+                self.log.warning(f"signing streams not saved: {exc}")
 
     def _open_bus(self, loop) -> None:
         plan = self.plan
         i = self.agent - 1
         listen_to = frozenset(int(j) + 1 for t in plan.schedule.topologies for j in t.in_neighbours(i))
         swarm = self.opts.swarm or plan.name
-        self.bus = Bus(swarm, self.agent, self.mission.plan_id, listen_to, plan.n_agents)
+        self.bus = Bus(swarm, self.agent, self.mission.plan_id, listen_to, plan.n_agents, reliable=self.answers.lockstep)
         self.bus.on_estimate = self._on_estimate
-        self.bus.open(self._zenoh_config(plan.n_agents), loop)
+        self.bus.open(self._zenoh(plan.n_agents), loop)
         self._design = plan.design
         self._in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in plan.schedule.topologies}
+        self._in_weights = {t.name: [(j, float(t.adjacency[i, j - 1])) for j in self._in_neighbours[t.name]]
+                            for t in plan.schedule.topologies}
         self._paths: dict[tuple, bool] = {}
+        self._presence_base = None
         self.ctrl = FormationController(self._design, 1, self.opts.rate_hz,
                                         thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
         omega, alpha = model.hover_trim(plan.airframe)
@@ -484,20 +536,11 @@ class Companion:
         FormationController.warm_up(self._design, self.opts.rate_hz)
         self.bus.publish_status(AgentStatus.IDLE)
 
-    def _zenoh_config(self, n_agents: int):
-        import zenoh
-
-        o = self.opts
-        if o.zenoh_config is not None:
-            try:
-                return tune(zenoh.Config.from_file(str(o.zenoh_config)))
-            except Exception as exc:  # zenoh raises its own error type for a bad file
-                raise PlanError(f"{o.zenoh_config}: not a usable Zenoh configuration ({exc})") from None
-        if o.zenoh_listen or o.zenoh_connect:
-            from .bus import peer_config
-
-            return peer_config(list(o.zenoh_listen), list(o.zenoh_connect), o.zenoh_mode)
-        return default_config(self.agent, n_agents, o.zenoh_base_port)
+    def _zenoh(self, n_agents: int):
+        """This agent's Zenoh session (shared with the process's other agents), or its config."""
+        if self.shared_zenoh is not None:
+            return self.shared_zenoh.session(n_agents)
+        return zenoh_config(self.opts, frozenset({self.agent}), n_agents)
 
     # -- the flight controller ----------------------------------------------------------------
 
@@ -541,16 +584,21 @@ class Companion:
                     self._release("disarmed")
                 elif fc.mode != CustomMode.EXTERNAL and msg.system_status != mavlink.MAV_STATE_CRITICAL:
                     self._release(f"the flight controller is in {mode_name(fc.mode)}")
-        elif t == "ATTITUDE":
-            fc.att = (msg.time_boot_ms, attitude_to_paper(msg.roll, msg.pitch, msg.yaw),
-                      rates_to_paper(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
-        elif t == "LOCAL_POSITION_NED":
-            if fc.att is not None and fc.att[0] == msg.time_boot_ms:
+        elif msg.get_msgId() in HIGH_RATE:
+            boot_ms = msg.time_boot_ms if hasattr(msg, "time_boot_ms") else msg.time_usec // 1000
+            self.answers.telemetry(boot_ms)
+            if t == "ATTITUDE":
+                fc.att = (msg.time_boot_ms, attitude_to_paper(msg.roll, msg.pitch, msg.yaw),
+                          rates_to_paper(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+            elif t == "LOCAL_POSITION_NED" and fc.att is not None and fc.att[0] == msg.time_boot_ms:
+                last = getattr(self, "_last_sample", None)
+                if last is not None and 0 <= last.boot_ms - msg.time_boot_ms < REBOOT_JUMP_MS:
+                    return  # the same state again (a lockstep simulator's re-send): one tick each
                 self._sample(Sample(t_rx, msg.time_boot_ms, fc.att[1], fc.att[2],
                                     local_ned_to_paper(msg.x, msg.y, msg.z), local_ned_to_paper(msg.vx, msg.vy, msg.vz)))
         elif t == "SYSTEM_TIME":
             if msg.time_unix_usec > 0:
-                fc.clock_offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+                self.clock.set_offset(msg.time_unix_usec, msg.time_boot_ms)
         elif t == "EXTENDED_SYS_STATE":
             fc.landed = msg.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
         elif t == "COMMAND_ACK":
@@ -589,13 +637,21 @@ class Companion:
             await asyncio.sleep(0.2)
         self.fc.max_rpm = await self.fc_param("MOT_MAX_RPM")
         self.fc.servo_deg = await self.fc_param("SERVO_LIM_DEG")
+        try:
+            self.answers.lockstep = await self.fc_param("SIM_LOCKSTEP") == 1.0
+        except TimeoutError:  # an autopilot, not triswarm's simulator
+            self.answers.lockstep = False
+        if self.answers.lockstep:
+            self.log.info("the flight controller is a simulator in lockstep: every state is answered")
+            if hasattr(self, "bus"):
+                self.bus.reliable_estimates()
         interval = 1e6 / self.opts.rate_hz
         for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
                            (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
                            (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
             await self.fc_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
         await self.fc_command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)
-        while self.fc.clock_offset_s is None:
+        while not self.clock.known:
             await asyncio.sleep(0.05)
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,
         # which would otherwise stall the loop for tens of milliseconds at a time.
@@ -604,8 +660,7 @@ class Companion:
 
     def fc_unix(self, boot_ms: int) -> float:
         """The flight controller's time of a sample, as Unix time (its SYSTEM_TIME clock)."""
-        off = self.fc.clock_offset_s
-        return time.time() if off is None else off + boot_ms / 1000.0
+        return self.clock.unix(boot_ms)
 
     # -- the mission --------------------------------------------------------------------------
 
@@ -613,16 +668,16 @@ class Companion:
         try:
             await self._mission()
         except Exception as exc:  # the mission stops; the companion keeps routing and reporting
-            log.exception("mission stopped")
+            self.log.exception("mission stopped")
             self.statustext(f"companion {self.agent}: mission stopped: {exc}"[:50], mavlink.MAV_SEVERITY_ERROR)
 
     async def _mission(self) -> None:
         await self.setup_fc()
         m = self.mission
         if m is None:
-            log.info(f"agent {self.agent}: no plan; waiting for one")
+            self.log.info(f"agent {self.agent}: no plan; waiting for one")
             return
-        now = time.time()
+        now = self.clock.now()
         if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
             self.statustext(f"companion {self.agent}: resuming plan after restart")
             await self._resume()
@@ -644,16 +699,16 @@ class Companion:
     async def _start_when_due(self) -> None:
         m = self.mission
         try:
-            while self.fc.clock_offset_s is None:  # setup_fc is still running
+            while not self.clock.known or self.fc.max_rpm is None:  # setup_fc is still running
                 await asyncio.sleep(0.05)
             if self.opts.autostart:  # (a start command has its answer already)
                 self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
-                if time.time() > m.start_unix_s - ARM_LEAD_S:
-                    self.statustext(f"companion {self.agent}: ready {time.time() - m.start_unix_s + ARM_LEAD_S:.1f} s "
+                if self.clock.now() > m.start_unix_s - ARM_LEAD_S:
+                    self.statustext(f"companion {self.agent}: ready {self.clock.now() - m.start_unix_s + ARM_LEAD_S:.1f} s "
                                     f"late for the start", mavlink.MAV_SEVERITY_WARNING)
-                await asyncio.sleep(max(0.0, m.start_unix_s - ARM_LEAD_S - time.time()))
+                await self.clock.until(m.start_unix_s - ARM_LEAD_S)
                 await self._arm()
-            await asyncio.sleep(max(0.0, m.start_unix_s - time.time()))
+            await self.clock.until(m.start_unix_s)
             if not self.fc.armed:
                 self.statustext(f"companion {self.agent}: start time reached; waiting to be armed")
                 while not self.fc.armed:
@@ -664,11 +719,11 @@ class Companion:
                 if result != mavlink.MAV_RESULT_ACCEPTED:
                     raise RuntimeError(f"the flight controller refused external control ({result})")
                 self.fc.mode = CustomMode.EXTERNAL
-            self._begin_entry(max(m.start_unix_s, self.fc_unix(self._last_sample.boot_ms)))
+            self._begin_entry(max(0.0, self._plan_time(self._last_sample)))
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
-            log.exception("plan start failed")
+            self.log.exception("plan start failed")
             self._set_phase(Phase.IDLE, "")
             self.statustext(f"companion {self.agent}: plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
@@ -693,15 +748,16 @@ class Companion:
         R = model.rotation_body_to_earth(s.eta)
         return np.concatenate([R.T @ s.velocity_e, s.rates, s.eta, s.position])
 
-    def _begin_entry(self, t0_unix: float) -> None:
-        """Take off from where the drone rests and enter the formation (the plan's entry)."""
+    def _begin_entry(self, t0_s: float) -> None:
+        """Take off from where the drone rests and enter the formation (the plan's entry) from plan
+        time ``t0_s``."""
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         m = self.mission
         m.phase = "flying"
         self.store.save(m)
         start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self._flying = self._tracking = self.plan.entry_formation(start, t0_unix - m.start_unix_s, self.formation)
+        self._flying = self._tracking = self.plan.entry_formation(start, t0_s, self.formation)
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -711,8 +767,7 @@ class Companion:
         if not self.fc.armed or self.fc.landed:
             if not self.fc.armed:
                 await self._arm()
-            t0 = self.fc_unix(self._last_sample.boot_ms) + 1.0
-            self._begin_entry(t0)
+            self._begin_entry(self._plan_time(self._last_sample) + 1.0)
             return
         x = self._current_state()
         self.ctrl.reset(x[None, :])
@@ -743,15 +798,15 @@ class Companion:
         duration_s = rejoin_duration(dp, dv, self.values["REJOIN_ACCEL"], self.values["REJOIN_S"])
         if duration_s > rejoin.duration_s:
             rejoin = Rejoin(source, target, t0, duration_s)
-        log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
+        self.log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
         self._tracking = rejoin
         self._set_phase(Phase.FLYING, "")
 
     def _set_phase(self, phase: Phase, reason: str) -> None:
         if phase != self.phase:
             if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
-                self._flying_since = time.monotonic()
-            self.phase, self._phase_reason, self._phase_since = phase, reason, time.time()
+                self._flying_since = self.clock.now()
+            self.phase, self._phase_reason, self._phase_since = phase, reason, self.clock.now()
             self._publish_status()
             if phase == Phase.HOLDING:
                 self.statustext(f"companion {self.agent}: holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
@@ -764,22 +819,29 @@ class Companion:
             self.bus.publish_status(PHASE_STATUS[self.phase], self._phase_reason, self._phase_since)
 
     def _plan_time(self, s: Sample) -> float:
-        return self.fc_unix(s.boot_ms) - self.mission.start_unix_s
+        return self.clock.plan_time(s.boot_ms, self.mission.start_unix_s)
 
     # -- the tick -----------------------------------------------------------------------------
 
     def _sample(self, s: Sample) -> None:
         prev = getattr(self, "_last_sample", None)
         if prev is not None and s.t_rx - prev.t_rx > 0.05 and self.phase == Phase.FLYING:
-            log.info(f"telemetry gap {1e3 * (s.t_rx - prev.t_rx):.0f} ms (fc time {s.boot_ms - prev.boot_ms} ms)")
+            self.log.info(f"telemetry gap {1e3 * (s.t_rx - prev.t_rx):.0f} ms (fc time {s.boot_ms - prev.boot_ms} ms)")
         self._last_sample = s
+        self.clock.advance(s.boot_ms)
         self._queue.append(s)
 
     def _process_samples(self) -> None:
         """After the flight-controller link has read everything waiting: act on the newest
         sample, right here in the reader (no task switch on the hot path). Samples the loop fell
         behind on still update the estimate, as periods in which the flight controller kept the
-        last command (deadline misses)."""
+        last command (deadline misses). In lockstep, answer what was not commanded."""
+        try:
+            self._take_samples()
+        finally:
+            self.answers.settle(self._waiting is not None, self._no_command)
+
+    def _take_samples(self) -> None:
         if not self._queue:
             return
         if self._waiting is not None:  # a new sample before the neighbours came: act now
@@ -802,7 +864,7 @@ class Companion:
         self._waiting = None
         self._errors += 1
         if self._errors <= 3:
-            log.exception("tick failed")
+            self.log.exception("tick failed")
 
     def _tick(self, s: Sample) -> None:
         """First half of a tick: estimate, publish, and wait for the neighbours' estimates of the
@@ -811,7 +873,7 @@ class Companion:
             return
         if self.phase in (Phase.IDLE, Phase.SCHEDULED):
             if self.fc.armed and self.fc.landed and self.fc.mode == CustomMode.EXTERNAL:
-                self._send_actuators(*self._idle, s.t_rx)  # armed on the ground: idle, not the failsafe
+                self._send_actuators(*self._idle, s)  # armed on the ground: idle, not the failsafe
             return
         self.bus.drain()
         y = np.concatenate([s.eta, s.position])[None, :]
@@ -830,12 +892,14 @@ class Companion:
         self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
         topo = self.plan.schedule.at(ref.t_p)
         expected = [j for j in self._in_neighbours[topo.name] if self._usable(j, check_fresh=False)]
-        self._waiting = _Waiting(s, xhat, xi, ref, topo, expected, t_plan)
+        self._waiting = _Waiting(s, xhat, xi, ref, topo, expected, t_plan, time.monotonic())
         self.bus.waiting = True  # before looking: an estimate arriving from now on rings
         self.bus.take_estimates()  # (may complete the tick through _on_estimate)
         if self._waiting is not None:
             if self.bus.ready(expected, ref.t_p, 0.5 * dt):
                 self._finish_tick()
+            elif self.answers.lockstep:  # no deadline: they come, or the watchdog says who died
+                self._deadline = self.loop.call_later(LOCKSTEP_RECHECK_S, self._lockstep_recheck)
             else:
                 # the wait counts from now, not from the datagram's arrival: a late wake-up
                 # must not also cost the neighbours' estimates
@@ -845,6 +909,29 @@ class Companion:
         w = self._waiting
         if w is not None and self.bus.ready(w.expected, w.ref.t_p, 0.5 * self.ctrl.dt_s):
             self._finish_tick()
+
+    def _lockstep_recheck(self) -> None:
+        """Lockstep, still waiting for neighbours: drop the ones that died or stopped flying (their
+        liveliness and status tell), and after NB_WATCHDOG_S of wall time the live ones that never
+        published (hung), saying so; finish the tick when the rest are in."""
+        self._deadline = None
+        w = self._waiting
+        if w is None:
+            return
+        self.bus.drain()
+        w.expected = [j for j in w.expected if self._usable(j, check_fresh=False) and j not in self._silent]
+        tolerance = 0.5 * self.ctrl.dt_s
+        if time.monotonic() - w.since_wall > NB_WATCHDOG_S:
+            late = [j for j in w.expected if not self.bus.ready([j], w.ref.t_p, tolerance)]
+            if late:
+                self._silent.update(late)
+                self.log.warning(f"lockstep: no estimate for t_plan {w.ref.t_p:.3f} from agent(s) {late} in "
+                            f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
+            w.expected = [j for j in w.expected if j not in late]
+        if self.bus.ready(w.expected, w.ref.t_p, tolerance):
+            self._finish_tick()
+        else:
+            self._deadline = self.loop.call_later(LOCKSTEP_RECHECK_S, self._lockstep_recheck)
 
     def _finish_tick(self) -> None:
         """Second half: the neighbours' estimates are in (or the wait is over): check the path
@@ -860,23 +947,26 @@ class Companion:
             self._protocol_step(w)
         except Exception:
             self._tick_failed()
+        finally:
+            self.answers.settle(False, self._no_command)
 
     def _protocol_step(self, w: "_Waiting") -> None:
         i, topo, bus = self.agent - 1, w.topo, self.bus
-        present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
+        present = self._presence()
         if not self._has_path(topo, present):
             self._start_hold(w.t_plan, w.xhat[0], f"no path to the leader in {topo.name}")
             self._hold_step(w.sample, w.xhat, w.t_plan)
             return
-        used = [j for j in self._in_neighbours[topo.name] if present[j - 1] and bus.neighbours[j].heard]
-        weights = topo.adjacency[i, [j - 1 for j in used]]
         nsum = np.zeros(12)
+        weight = 0.0
         now = time.time()
-        for w_ij, j in zip(weights, used):
+        for j, w_ij in self._in_weights[topo.name]:
             nb = bus.neighbours[j]
-            nsum += w_ij * nb.xi
-            self.health.neighbour_age[j].add(now - nb.stamp_s)
-        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weights.sum()]),
+            if present[j - 1] and nb.heard:
+                nsum += w_ij * nb.xi
+                weight += w_ij
+                self.health.neighbour_age[j].add(now - nb.stamp_s)
+        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weight]),
                            topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
         self._actuate(v, w.sample)
         if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report
@@ -891,11 +981,22 @@ class Companion:
         ref = reference_at(self._design, self._hold.offsets, no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s,
                            rows=[i])
         self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
-        present = tuple(self._usable(j + 1) for j in range(self.plan.n_agents))
-        if self._has_path(self.plan.schedule.at(ref.t_p), present):
+        if self._has_path(self.plan.schedule.at(ref.t_p), self._presence()):
             self._rejoin(t_plan, RelativeTo(self._hold, self.leader))
         v = pinned_input(self._design, xhat - ref.h, ref.x0, ref.gamma)
         self._actuate(v, s)
+
+    def _presence(self) -> tuple[bool, ...]:
+        """Which agents count now (``_usable``), every one. Of the agents this one does not listen
+        to, only liveliness, status and the start decide: that part is kept until one changes."""
+        starting = self.clock.now() - self._flying_since < START_GRACE_S
+        key = (self.bus.changes, starting)
+        if self._presence_base is None or self._presence_base[0] != key:
+            self._presence_base = (key, [self._usable(j) for j in range(1, self.plan.n_agents + 1)])
+        present = list(self._presence_base[1])
+        for j in self.bus.neighbours:  # (their estimates' freshness changes every tick)
+            present[j - 1] = self._usable(j)
+        return tuple(present)
 
     def _has_path(self, topo, present: tuple[bool, ...]) -> bool:
         """Whether this agent has a path from the leader through the present agents (cached: the
@@ -915,13 +1016,17 @@ class Companion:
         bus = self.bus
         if j not in bus.alive:
             return False
-        starting = time.monotonic() - self._flying_since < START_GRACE_S  # the swarm takes off together
+        starting = self.clock.now() - self._flying_since < START_GRACE_S  # the swarm takes off together
         status = bus.statuses.get(j, AgentStatus.FLYING)
         if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):
             return False
         nb = bus.neighbours.get(j)
         if nb is None:
             return True  # not one of ours to listen to: liveliness and status decide
+        if j in self._silent:  # (lockstep: the watchdog's) until an estimate of now comes
+            if nb.t_plan_s < self._t_p - 0.5 * self.ctrl.dt_s:
+                return False
+            self._silent.discard(j)
         if not nb.heard:
             return starting
         if nb.status != AgentStatus.FLYING:
@@ -933,7 +1038,7 @@ class Companion:
         """xhat: the estimate x_r predicted to t_plan + lead ([lambda_dot, eta_dot, eta, lambda])."""
         self._hold = self._braking(t_plan + self.ctrl.lead_s, xhat)
         absent = {j: self._why_absent(j) for j in range(1, self.plan.n_agents + 1) if not self._usable(j)}
-        log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
+        self.log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
         self._set_phase(Phase.HOLDING, reason)
 
     def _why_absent(self, j: int) -> str:
@@ -949,15 +1054,22 @@ class Companion:
 
     def _actuate(self, v: np.ndarray, s: Sample) -> None:
         act = self.ctrl.actuate(v)
-        self._send_actuators(act.omega_rad_s[0], act.alpha_rad[0], s.t_rx)
+        self._send_actuators(act.omega_rad_s[0], act.alpha_rad[0], s)
         self.health.telemetry_age.add(time.time() - self.fc_unix(s.boot_ms))
 
-    def _send_actuators(self, omega, alpha, t_rx: float) -> None:
+    def _send_actuators(self, omega, alpha, s: Sample) -> None:
+        """The command answering sample s (its time_usec is the sample's time, boot us)."""
         controls = encode_actuators(omega, alpha, self.fc.max_rpm * math.pi / 30.0, math.radians(self.fc.servo_deg))
-        frame = mavlink.MAVLink_set_actuator_control_target_message(
-            int(time.time() * 1e6), 0, self.agent, 1, controls).pack(self.fc_link.codec)
-        self.health.tick(t_rx, time.time())  # the command leaves now (loopback may preempt us in the call)
-        self.fc_link.write(frame)
+        self.health.tick(s.t_rx, time.time())  # the command leaves now (loopback may preempt us in the call)
+        self.answers.command(s.boot_ms, self._actuator_frame(s.boot_ms, controls))
+
+    def _no_command(self, boot_ms: int) -> bytes:
+        """Lockstep's answer to a state it commands nothing for (NaN controls)."""
+        return self._actuator_frame(boot_ms, NO_COMMAND)
+
+    def _actuator_frame(self, boot_ms: int, controls: list[float]) -> bytes:
+        return mavlink.MAVLink_set_actuator_control_target_message(
+            (boot_ms & 0xFFFFFFFF) * 1000, 0, self.agent, 1, controls).pack(self.fc_link.codec)
 
     # -- the ground station and component 191 -------------------------------------------------
 
@@ -991,7 +1103,7 @@ class Companion:
         name = list(self.values)[k]
         if name == "PLAN_T_S":  # the plan time now, for commands timed in it (NaN: no plan in force)
             m = self.mission
-            self.values[name] = math.nan if m is None or m.start_unix_s is None else time.time() - m.start_unix_s
+            self.values[name] = math.nan if m is None or m.start_unix_s is None else self.clock.now() - m.start_unix_s
         return mavlink.MAVLink_param_value_message(name.encode(), float(self.values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
                                                    len(self.values), k)
 
@@ -1031,7 +1143,7 @@ class Companion:
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """To the ground station; a text longer than 50 bytes goes in chunks (MAVLink 2 id, chunk_seq)."""
-        log.info(text)
+        self.log.info(text)
         data = text.encode()
         if len(data) <= 50:
             self.gcs_link.send(mavlink.MAVLink_statustext_message(severity, data))

@@ -202,6 +202,14 @@ def sitl_up(
     spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
     stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
     duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    param: Annotated[Optional[list[str]], typer.Option("--param", metavar="NAME=VALUE",
+                                                       help="A parameter every vehicle starts with, e.g. "
+                                                            "NOISE_POS_M=0.02 (repeat).")] = None,
+    lockstep: Annotated[bool, typer.Option(help="Step the clock when every vehicle's companion has answered, not with "
+                                                "the wall clock: as fast as the machine allows, the same however busy "
+                                                "it is. The clock starts when every companion answers.")] = False,
+    lockstep_timeout_s: Annotated[float, typer.Option(help="With --lockstep: a companion silent this long (wall "
+                                                           "time) has died; its vehicle flies on without it [s].")] = 10.0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
     """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
@@ -209,6 +217,7 @@ def sitl_up(
 
     from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
+    from triswarm.sitl.lockstep import LockstepOptions
 
     with user_errors():
         _finite("speedup", speedup, positive=True)
@@ -216,12 +225,23 @@ def sitl_up(
         _finite("physics-hz", physics_hz, positive=True)
         _finite("spacing-m", spacing_m, positive=True)
         _finite("duration", duration, positive=True)
+        _finite("lockstep-timeout-s", lockstep_timeout_s, positive=True)
+        if lockstep and speedup != 1.0:
+            raise UserError("--speedup and --lockstep exclude each other: in lockstep the companions set the pace")
         if not 1 <= first_id <= 256 - n:
             raise UserError(f"--first-id {first_id} with {n} vehicles leaves system ids outside 1..255")
         if not 0 <= base_port <= 65535 - 2 * n:
             raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
+        params = []
+        for item in param or []:
+            name, _, value = item.partition("=")
+            try:
+                params.append((name.strip().upper(), float(value)))
+            except ValueError:
+                raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
-                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id)
+                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
+                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)
@@ -242,15 +262,16 @@ def sitl_up(
                           "Ctrl-C stops.", soft_wrap=True)
 
         try:
-            result = asyncio.run(run_sitl(opts, on_ready=ready))
+            result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
         except OSError as exc:
             raise UserError(str(exc)) from None
         if stats is not None:
             write_json_atomically(stats, result)
     if not quiet:
         dropped = [f"{v['sysid']}: {v['drops']}" for v in result["vehicles"] if v["drops"]]
+        rtf = (result.get("lockstep") or {}).get("real_time_factor") or result["speedup_achieved"] or 0.0
         console.print(f"stopped after {result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
-                      f"(speedup {result['speedup_achieved'] or 0:.2f}); dropped frames per vehicle: "
+                      f"(real-time factor {rtf:.2f}); dropped frames per vehicle: "
                       f"{', '.join(dropped) if dropped else 'none'}", soft_wrap=True)
 
 

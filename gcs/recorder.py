@@ -1,5 +1,8 @@
 """Record what the flight controllers themselves report (their ground-station links), in the paper's
-frame and in plan time: the truth a formation is judged by, not the companions' own reports."""
+frame and in plan time: the truth a formation is judged by, not the companions' own reports.
+
+Every record is stamped with the flight controllers' clock (SYSTEM_TIME and the telemetry's boot
+time, as Unix time), never the wall's, so a run on a simulator's clock (lockstep) reads the same."""
 
 from __future__ import annotations
 
@@ -31,7 +34,9 @@ class Recorder:
         self.statustexts: list[tuple[float, int, str]] = []
         self.heartbeats: dict[int, object] = {}
         self.modes: dict[int, list[tuple[float, int, bool]]] = {}
-        """Per vehicle, every change of (custom mode, armed) with the Unix time it was heard."""
+        """Per vehicle, every change of (custom mode, armed) with the flight controller's time it was
+        heard at (Unix time; NaN before its clock was heard)."""
+        self._fc_now: dict[int, float] = {}
         self._socks = {}
         self._codec = new_codec(254, 190)
         for v in manifest["vehicles"]:
@@ -95,6 +100,7 @@ class Recorder:
             return
         if t == "SYSTEM_TIME" and m.time_unix_usec > 0:
             self._offset[sysid] = m.time_unix_usec / 1e6 - m.time_boot_ms / 1000.0
+            self._fc_now[sysid] = m.time_unix_usec / 1e6
         elif t == "ATTITUDE":
             self._att[sysid] = (m.time_boot_ms, attitude_to_paper(m.roll, m.pitch, m.yaw))
         elif t == "LOCAL_POSITION_NED":
@@ -103,16 +109,23 @@ class Recorder:
             if att is not None and off is not None and att[0] == m.time_boot_ms:
                 tr = self.tracks[sysid]
                 tr.t_unix.append(off + m.time_boot_ms / 1000.0)
+                self._fc_now[sysid] = tr.t_unix[-1]
                 tr.position_m.append(local_ned_to_paper(m.x, m.y, m.z))
                 tr.euler_rad.append(att[1])
         elif t == "STATUSTEXT":
-            self.statustexts.append((time.time(), sysid, m.text))
+            self.statustexts.append((self._fc_now.get(sysid, float("nan")), sysid, m.text))
         elif t == "HEARTBEAT" and m.get_srcComponent() == 1:
             self.heartbeats[sysid] = m
             state = (m.custom_mode, bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
             history = self.modes.setdefault(sysid, [])
             if not history or history[-1][1:] != state:
-                history.append((time.time(), *state))
+                history.append((self._fc_now.get(sysid, float("nan")), *state))
+
+    def now(self) -> float:
+        """The flight controllers' clock as last heard, as Unix time: the slowest vehicle's (NaN
+        before every vehicle was heard)."""
+        times = [self._fc_now.get(s) for s in self.tracks]
+        return float("nan") if None in times else min(times)
 
     def arrays(self, start_unix: float, dt_s: float = 0.05, t_from: float | None = None, t_to: float | None = None):
         """Every vehicle resampled on a common plan-time grid: (t (T,), position (T, N, 3), euler

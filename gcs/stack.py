@@ -13,8 +13,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+def _below_ephemeral() -> tuple[int, int]:
+    """Ports to pick listening ports from: below the kernel's ephemeral range, which it hands to
+    every outgoing connection (a port picked there may be taken by one before it is bound)."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return max(1024, low - 20000), low
+
+
 def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[int]:
-    """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count)."""
+    """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count), picked below the
+    kernel's ephemeral range. (For the companions' listening ports, which their peers must know
+    before they start; everything that can bind port 0 does.)"""
     import random
 
     def free(port: int) -> bool:
@@ -29,12 +41,13 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[i
         return True
 
     rng = random.Random()
+    lo, hi = _below_ephemeral()
     for _ in range(tries):
         if contiguous:
-            base = rng.randrange(20000, 60000 - count)
+            base = rng.randrange(lo, hi - count - 1)
             ports = list(range(base + 1, base + count + 1))
         else:
-            ports = [rng.randrange(20000, 60000) for _ in range(count)]
+            ports = [rng.randrange(lo, hi) for _ in range(count)]
         if len(set(ports)) == count and all(free(p) for p in ports):
             return ports
     raise RuntimeError("no free ports found")
@@ -58,6 +71,15 @@ class Stack:
     """Prefix for every command (e.g. ip netns exec NAME)."""
     companions: bool = True
     """Start the companions (False: the SITL alone, its ports and the Zenoh ports chosen)."""
+    agents_per_process: int = 1
+    """Companion processes fly this many agents each (0: all in one process, one Zenoh session)."""
+    alone: tuple[int, ...] = ()
+    """Agents that fly in a process of their own whatever ``agents_per_process`` says (a test that
+    kills a companion kills one agent)."""
+    lockstep: bool = False
+    """The SITL steps when every companion has answered (``sitl up --lockstep``): the stack runs on
+    simulated time, as fast as the machine allows. ``start_at`` is then on that clock, and
+    ``start_delay_s`` counts simulated seconds from the moment every companion answers."""
 
     def __post_init__(self) -> None:
         self.workdir = Path(self.workdir)
@@ -77,7 +99,7 @@ class Stack:
         manifest_path = self.workdir / "manifest.json"
         self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
                              str(manifest_path), "--base-port", "0", "--stats", str(self.workdir / "stats" / "sitl.json"),
-                             "--quiet", *self.sitl_args])
+                             *(["--lockstep"] if self.lockstep else ["--quiet"]), *self.sitl_args])
         deadline = time.monotonic() + 60.0
         while not manifest_path.exists():
             if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
@@ -87,9 +109,16 @@ class Stack:
         self.manifest = json.loads(manifest_path.read_text())
         self.gcs_ports = free_ports(self.n)
         self.zenoh_base = free_ports(self.n, contiguous=True)[0] - 1
-        self.start_at = time.time() + self.start_delay_s
-        for i in range(1, self.n + 1 if self.companions else 1):
-            self.start_companion(i)
+        clock = self.manifest["clock"]
+        self.start_at = (clock["boot_unix_s"] if clock["lockstep"] else time.time()) + self.start_delay_s
+        rest = [i for i in range(1, self.n + 1) if i not in self.alone]
+        k = len(rest) if self.agents_per_process == 0 else self.agents_per_process
+        groups = [[i] for i in self.alone] + [rest[a:a + k] for a in range(0, len(rest), max(k, 1))]
+        self.process_of = {i: (f"companion-{g[0]}" if len(g) == 1 else f"companions-{g[0]}-{g[-1]}")
+                           for g in groups for i in g}
+        self.groups = {self.process_of[g[0]]: g for g in groups}
+        for name in self.groups if self.companions else ():
+            self._spawn(name, self.companion_cmd(self.groups[name]))
         from .link import write_manifest
 
         self.swarm_manifest = self.workdir / "swarm.json"
@@ -100,21 +129,28 @@ class Stack:
         """The ground station's URL of each companion."""
         return {i: f"udpout:127.0.0.1:{self.gcs_ports[i - 1]}" for i in range(1, self.n + 1)}
 
-    def companion_cmd(self, i: int) -> list[str]:
-        v = self.manifest["vehicles"][i - 1]
+    def companion_cmd(self, agents: list[int]) -> list[str]:
         plan = [] if self.plan_path is None else ["--plan", str(self.plan_path), "--autostart",
                                                   "--start-at", f"{self.start_at:.3f}"]
-        return [sys.executable, "-m", "triswarm.companion.cli", "--id", str(i),
-                "--fc", v["links"]["companion"]["pymavlink"], "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}",
+        links = []
+        for i in agents:
+            v = self.manifest["vehicles"][i - 1]
+            links += ["--id", str(i), "--fc", v["links"]["companion"]["pymavlink"],
+                      "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}"]
+        extra = [arg for i in agents for arg in self.companion_args.get(i, [])]
+        return [sys.executable, "-m", "triswarm.companion.cli", *links,
                 *plan, "--zenoh-base-port", str(self.zenoh_base), "--rate-hz", str(self.rate_hz),
-                "--state-dir", str(self.workdir / "state" / str(i)), "--stats", str(self.workdir / "stats" / f"{i}.json"),
-                *self.companion_args.get(i, [])]
+                "--state-dir", str(self.workdir / "state" / "{id}"), "--stats", str(self.workdir / "stats" / "{id}.json"),
+                *extra]
 
     def start_companion(self, i: int) -> None:
-        self._spawn(f"companion-{i}", self.companion_cmd(i))
+        """(Re)start the process that flies agent i."""
+        name = self.process_of[i]
+        self._spawn(name, self.companion_cmd(self.groups[name]))
 
     def kill_companion(self, i: int, sig: int = signal.SIGKILL) -> None:
-        proc = self.procs[f"companion-{i}"]
+        """Signal the process that flies agent i (every agent it flies goes with it)."""
+        proc = self.procs[self.process_of[i]]
         proc.send_signal(sig)
         proc.wait(timeout=10)
 
@@ -131,6 +167,9 @@ class Stack:
         return json.loads((self.workdir / "stats" / f"{name}.json").read_text())
 
     def log(self, name: str) -> str:
+        """A process's log: "sitl", or "companion-3" (the process that flies agent 3)."""
+        if name.startswith("companion-"):
+            name = self.process_of[int(name.removeprefix("companion-"))]
         return (self.workdir / "logs" / f"{name}.log").read_text()
 
 

@@ -13,8 +13,9 @@ condition (76) holds. A formation given as raw 12-vectors is checked by ``design
 from __future__ import annotations
 
 import math
-
+from collections import OrderedDict
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -33,8 +34,14 @@ class Kinematics:
     eta_ddot: np.ndarray
 
     def offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._offsets
+
+    @cached_property
+    def _offsets(self) -> tuple[np.ndarray, np.ndarray]:
         h = np.concatenate([self.p_dot, self.eta_dot, self.eta, self.p], axis=-1)
         h_dot = np.concatenate([self.p_ddot, self.eta_ddot, self.eta_dot, self.p_dot], axis=-1)
+        h.setflags(write=False)  # (kept, and shared by every caller)
+        h_dot.setflags(write=False)
         return h, h_dot
 
 
@@ -120,7 +127,10 @@ class RotatingPolygon(Formation):
                 raise ParameterError(f"rotating polygon {name} must be a finite number")
         if self.radius_m < 0:
             raise ParameterError(f"rotating polygon radius_m must not be negative, got {self.radius_m}")
-        object.__setattr__(self, "attitude_rad", _as_agents("attitude", self.attitude_rad, self.n_agents))
+        attitude = _as_agents("attitude", self.attitude_rad, self.n_agents)
+        attitude.setflags(write=False)
+        object.__setattr__(self, "attitude_rad", attitude)
+        object.__setattr__(self, "_recent", OrderedDict())
 
     @classmethod
     def paper(cls, n_agents: int = 6) -> "RotatingPolygon":
@@ -129,6 +139,16 @@ class RotatingPolygon(Formation):
         return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=att)
 
     def kinematics(self, t_s: float) -> Kinematics:
+        """(The last few instants are kept: the agents of one process ask for the same ones.)"""
+        recent = self._recent
+        k = recent.get(t_s)
+        if k is None:
+            k = recent[t_s] = self._kinematics(t_s)
+            if len(recent) > 8:
+                recent.popitem(last=False)
+        return k
+
+    def _kinematics(self, t_s: float) -> Kinematics:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
         ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
         s, c = np.sin(ang), np.cos(ang)
@@ -139,6 +159,8 @@ class RotatingPolygon(Formation):
         p_dot[:, 0], p_dot[:, 1] = R * w * c, -R * w * s
         p_ddot[:, 0], p_ddot[:, 1] = -R * w * w * s, -R * w * w * c
         z3 = np.zeros((n, 3))
+        for a in (p, p_dot, p_ddot, z3):
+            a.setflags(write=False)
         return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:

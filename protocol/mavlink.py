@@ -28,6 +28,7 @@ and ``setup_signing``, on pymavlink's own signing state (``MAVLink.signing``).
 from __future__ import annotations
 
 import enum
+import math
 import hashlib
 import hmac
 import struct
@@ -215,21 +216,21 @@ class ActuatorDecode:
 
 def encode_actuators(omega_rad_s, alpha_rad, max_rotor_speed_rad_s: float, servo_limit_rad: float) -> list[float]:
     """Rotor speeds [rad/s] and servo angles [rad] (3 each) to controls[8]."""
-    w = np.asarray(omega_rad_s, dtype=float) / max_rotor_speed_rad_s
-    a = np.asarray(alpha_rad, dtype=float) / servo_limit_rad
-    return [float(x) for x in np.concatenate([np.clip(w, 0.0, 1.0), np.clip(a, -1.0, 1.0), [0.0, 0.0]])]
+    w = [min(max(float(x) / max_rotor_speed_rad_s, 0.0), 1.0) for x in omega_rad_s]
+    a = [min(max(float(x) / servo_limit_rad, -1.0), 1.0) for x in alpha_rad]
+    return w + a + [0.0, 0.0]
 
 
 def decode_actuators(controls, max_rotor_speed_rad_s: float, servo_limit_rad: float) -> ActuatorDecode:
     """controls[8] to rotor speeds and servo angles; clamps and counts out-of-range values, drops
     the whole command if any of the six values is not finite."""
-    c = np.asarray(list(controls)[:6], dtype=float)
-    if c.shape != (6,) or not np.all(np.isfinite(c)):
+    c = [float(x) for x in list(controls)[:6]]  # (plain floats: numpy's overhead would dominate six values)
+    if len(c) != 6 or not all(math.isfinite(x) for x in c):
         return ActuatorDecode(None, None, 0, True)
-    w = np.clip(c[0:3], 0.0, 1.0)
-    a = np.clip(c[3:6], -1.0, 1.0)
-    clamped = int(np.count_nonzero(w != c[0:3]) + np.count_nonzero(a != c[3:6]))
-    return ActuatorDecode(w * max_rotor_speed_rad_s, a * servo_limit_rad, clamped, False)
+    w = [min(max(x, 0.0), 1.0) for x in c[0:3]]
+    a = [min(max(x, -1.0), 1.0) for x in c[3:6]]
+    clamped = sum(x != y for x, y in zip(w + a, c))
+    return ActuatorDecode(np.array(w) * max_rotor_speed_rad_s, np.array(a) * servo_limit_rad, clamped, False)
 
 
 def attitude_to_paper(roll: float, pitch: float, yaw: float) -> np.ndarray:

@@ -55,6 +55,8 @@ class ParamSpec:
     doc: str
 
 
+READ_ONLY_PARAMS = frozenset({"SIM_LOCKSTEP"})
+"""Set by the simulator at start, never over MAVLink."""
 AIRFRAME_PARAMS = frozenset({"MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ_KGM2", "KF", "KD", "ARM_LEN_M",
                              "SERVO_DELAY_S", "MOT_MAX_RPM", "SERVO_LIM_DEG"})
 """The parameters that change the plant (``FlightController.airframe``)."""
@@ -86,6 +88,7 @@ def param_specs(af: Airframe) -> list[ParamSpec]:
         ParamSpec("BAT_CAP_MAH", 5000.0, 100.0, 100000.0, "battery capacity [mAh]"),
         ParamSpec("BAT_CELLS", 3.0, 1.0, 14.0, "battery cells in series"),
         ParamSpec("BAT_ARM_PCT", 20.0, 0.0, 100.0, "refuse to arm below this charge [%]"),
+        ParamSpec("SIM_LOCKSTEP", 0.0, 0.0, 1.0, "1: the simulator steps when the companion has answered (read-only)"),
     ]
     for code, (_, rate_c, rate_g) in STREAMS.items():
         specs.append(ParamSpec(f"SC_{code}_HZ", rate_c, 0.0, 1000.0, f"stream rate of {code} on the companion link [Hz]"))
@@ -145,6 +148,8 @@ class FlightController:
         self.ext_omega = np.zeros(3)
         self.ext_alpha = np.zeros(3)
         self.last_command_s = -math.inf
+        self.answered_us = -1
+        """The newest telemetry time [boot us] the companion has answered (lockstep)."""
         self.takeoff_alt_m: float | None = None
         self.counters: Counter[str] = Counter()
         self.outbox: list[Outgoing] = []
@@ -178,6 +183,8 @@ class FlightController:
         spec = self.spec_by_name.get(name)
         if spec is None:
             return f"unknown parameter {name}"
+        if name in READ_ONLY_PARAMS:
+            return f"{name} is read-only"
         if not math.isfinite(value):
             return f"{name} must be a finite number"
         if not spec.lo <= value <= spec.hi:
@@ -337,6 +344,11 @@ class FlightController:
     def _on_set_actuator_control_target(self, msg, link, now_s, snap):
         if msg.group_mlx != ACTUATOR_GROUP:
             self.counters["drop_actuator_group"] += 1
+            return []
+        if link == "companion":
+            self.answered_us = max(self.answered_us, msg.time_usec)
+        if all(math.isnan(c) for c in msg.controls[:6]):  # an answer that commands nothing (lockstep)
+            self.counters["actuator_no_command"] += 1
             return []
         af = self.airframe()
         dec = decode_actuators(msg.controls, af.max_rotor_speed_rad_s, af.servo_limit_rad)
@@ -562,11 +574,11 @@ def _param_name(param_id) -> str:
 
 
 def _ms(now_s: float) -> int:
-    return int(now_s * 1000.0) & 0xFFFFFFFF
+    return round(now_s * 1000.0) & 0xFFFFFFFF  # (round: a time of whole steps is no float error below it)
 
 
 def _us(now_s: float) -> int:
-    return int(now_s * 1e6)
+    return round(now_s * 1e6)
 
 
 # Each builder converts the paper-frame snapshot to MAVLink's NED/FRD here and only here.
@@ -676,7 +688,7 @@ def _actuator_output_status(fc, now_s, s):
 
 
 def _system_time(fc, now_s, s):
-    return mavlink.MAVLink_system_time_message(int((fc.boot_unix_s + now_s) * 1e6), _ms(now_s))
+    return mavlink.MAVLink_system_time_message(round(fc.boot_unix_s * 1e6) + _us(now_s), _ms(now_s))
 
 
 def _autopilot_version(fc, now_s, s):

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
 
 from .fc import LINK_PREFIX
+from .lockstep import LockstepOptions
 from .server import SitlServer
 from .swarm import SitlSwarm
 
@@ -35,6 +36,10 @@ class SitlOptions:
     first_id: int = 1
     """System id of the first vehicle: vehicle i (from 1) is system first_id + i - 1 (a swarm split over
     several hosts); its resting place follows its id (``swarm.ground_grid``)."""
+    params: tuple[tuple[str, float], ...] = ()
+    """Parameter values every vehicle starts with (e.g. sensor noise), as (name, value)."""
+    lockstep: LockstepOptions | None = None
+    """Step the clock by the companions' answers instead of the wall clock (``lockstep.py``)."""
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -46,19 +51,25 @@ def parse_home(text: str) -> tuple[float, float, float]:
     return lat, lon, alt
 
 
-async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = None) -> dict:
-    """Open every link, hand the manifest to ``on_ready``, fly until a signal (or duration);
-    return the stats."""
+async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = None,
+                   say: Callable[..., None] = lambda text, warning=False: print(text)) -> dict:
+    """Open every link, hand the manifest to ``on_ready``, fly until a signal (or duration of
+    simulated time); return the stats. ``say`` gets the lockstep's news."""
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
                       seed=opts.seed, first_id=opts.first_id)
-    for fc in swarm.fcs:
+    for i, fc in enumerate(swarm.fcs):
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
             if problem:
                 raise ValueError(f"--rate-hz: {problem}")
-    server = SitlServer(swarm, opts.bind, opts.base_port, opts.speedup)
+        for name, value in opts.params:
+            problem = fc.set_param(name, value)
+            if problem:
+                raise ValueError(f"--param {name}={value:g}: {problem}")
+        swarm.apply_airframe(i)
+    server = SitlServer(swarm, opts.bind, opts.base_port, opts.speedup, opts.lockstep, say=say)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -67,9 +78,7 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
         await server.open()
         if on_ready is not None:
             on_ready(server.manifest())
-        if opts.duration_s is not None:
-            loop.call_later(opts.duration_s / opts.speedup, stop.set)
-        await server.run(stop)
+        await server.run(stop, opts.duration_s)
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)

@@ -1,10 +1,11 @@
-"""The MAVLink face of the simulated swarm: one UDP endpoint per vehicle and link, real-time pacing.
+"""The MAVLink face of the simulated swarm: one UDP endpoint per vehicle and link, and the clock.
 
 Each link is a UDP server socket: a client (pymavlink ``udpout:``, MAVSDK ``udpout://``, MAVProxy)
 sends first (a heartbeat), and the vehicle then streams to every address heard from in the last
-few seconds. One asyncio loop runs the physics of all vehicles in step with the wall clock (times
-``speedup``), answers every datagram as it arrives, and sends the telemetry that falls due: all the
-messages one link owes at one physics step go out in one datagram.
+few seconds. One asyncio loop runs the physics of all vehicles, answers every datagram as it
+arrives, and sends the telemetry that falls due: all the messages one link owes at one physics
+step go out in one datagram. The clock is either the wall clock (times ``speedup``) or, with a
+``Lockstep``, the companions' answers (``lockstep.py``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import heapq
+import math
 import os
 import socket
 import time
@@ -21,7 +23,8 @@ from dataclasses import dataclass, field
 from triswarm.protocol import frames
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
 
-from .fc import LINKS, STREAMS
+from .fc import LINKS, STREAMS, _ms
+from .lockstep import HIGH_RATE_IDS, Lockstep, LockstepOptions
 from .swarm import SitlSwarm
 
 PEER_TIMEOUT_S = 5.0
@@ -30,6 +33,9 @@ MAX_BURST_STEPS = 200
 FINE_WAIT_S = 0.002
 MAX_DATAGRAMS_PER_WAKEUP = 256  # drain a flood in slices so the physics keeps its clock
 RECV_BUFFER_BYTES = 4 << 20
+LOCKSTEP_POLL_S = 0.1  # while the clock waits: look at the watchdog this often [s]
+REPORT_EVERY_S = 10.0  # lockstep: say how fast the clock runs this often [s]
+ACTUATOR_MSG_ID = mavlink.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
 SCHEDULED = (mavlink.MAVLINK_MSG_ID_HEARTBEAT, *(m for m, _, _ in STREAMS.values()))
 """Every message a vehicle sends on its own schedule (rates from ``FlightController.stream_rate_hz``)."""
 
@@ -62,9 +68,17 @@ class Link:
 
 class SitlServer:
     def __init__(self, swarm: SitlSwarm, bind_host: str = "127.0.0.1", base_port: int = 14600,
-                 speedup: float = 1.0) -> None:
+                 speedup: float = 1.0, lockstep: LockstepOptions | None = None,
+                 say=lambda text, warning=False: print(text)) -> None:
         if not (speedup > 0 and speedup <= 10000):
             raise ValueError(f"speedup must be a number above 0 and at most 10000, got {speedup!r}")
+        self.lockstep = None if lockstep is None else Lockstep(swarm.n, lockstep)
+        self.say = say
+        for fc in swarm.fcs:
+            fc.params["SIM_LOCKSTEP"] = float(lockstep is not None)
+        self.boot_unix_s = math.floor((time.time() - swarm.time_s) * 1000.0) / 1000.0
+        """Unix time of the flight controllers' boot, a whole millisecond: their SYSTEM_TIME is this plus
+        simulated time (so a start time a whole number of milliseconds after it is one exactly)."""
         self.swarm = swarm
         self.bind_host = bind_host
         self.base_port = base_port
@@ -78,6 +92,9 @@ class SitlServer:
         self.wall_start = 0.0
         self.wall_elapsed = 0.0
         self.exceptions = 0
+        self._resume: asyncio.Event | None = None
+        self._join_wall_s = 0.0  # lockstep: wall time until every companion answered [s]
+        self._join_sim_s = 0.0
 
     # -- sockets ----------------------------------------------------------------------------
 
@@ -127,6 +144,7 @@ class SitlServer:
             })
         return {"home": {"lat_deg": home.lat_deg, "lon_deg": home.lon_deg, "alt_m": home.alt_m},
                 "frame": "local NED, origin at home", "speedup": self.speedup,
+                "clock": {"lockstep": self.lockstep is not None, "boot_unix_s": self.boot_unix_s},
                 "physics_hz": self.swarm.physics_hz, "pid": os.getpid(), "vehicles": vehicles}
 
     # -- incoming ---------------------------------------------------------------------------
@@ -158,7 +176,8 @@ class SitlServer:
         except Exception:  # a parser that chokes on garbage loses the datagram, never the vehicle
             fc.counters["drop_unparseable_datagram"] += 1
             return
-        snap = self.swarm.snapshot(link.vehicle)
+        # (an actuator command needs no sensor snapshot: most datagrams in lockstep are those)
+        snap = None if all(m.get_msgId() == ACTUATOR_MSG_ID for m in msgs) else self.swarm.snapshot(link.vehicle)
         replies = []
         for msg in msgs:
             try:
@@ -168,6 +187,14 @@ class SitlServer:
                 fc.counters["drop_handler_error"] += 1
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
+        if self.lockstep is not None and link.name == "companion":
+            said = self.lockstep.answered(link.vehicle, fc.answered_us)
+            if said == "started":
+                self.say("lockstep: every vehicle's companion answers; the clock runs")
+            elif said == "back":
+                self.say(f"lockstep: vehicle {fc.sysid}'s companion answers again; it is back in lockstep")
+            if self._resume is not None and not self.lockstep.blocked:
+                self._resume.set()
         if fc.rates_changed:
             fc.rates_changed = False
             self._schedule_vehicle(link.vehicle)
@@ -234,26 +261,40 @@ class SitlServer:
                 continue  # rescheduled since
             heapq.heappush(heap, (due + period, i, name, msg_id, version, period))
             batches.setdefault((i, name), []).append(msg_id)
-        now_wall = time.monotonic()
         for (i, name), ids in batches.items():
-            link = self.links[i][name]
-            peers = link.live_peers(now_wall)
-            if not peers:
-                continue
-            fc = self.swarm.fcs[i]
-            snap = self.swarm.snapshot(i)
-            data = bytearray()
-            for msg_id in ids:
-                msg = fc.build(msg_id, self.swarm.time_s, snap)
-                data += msg.pack(link.codec)
-                self.sent[msg_id] += 1
-            self._sendto(link, bytes(data), peers)
+            self._send_batch(i, name, ids)
+
+    def _send_batch(self, i: int, name: str, ids) -> None:
+        """Messages ``ids`` of vehicle i as they are now, in one datagram on link ``name``."""
+        now_wall = time.monotonic()
+        link = self.links[i][name]
+        peers = link.live_peers(now_wall)
+        if not peers:
+            return
+        fc = self.swarm.fcs[i]
+        snap = self.swarm.snapshot(i)
+        data = bytearray()
+        for msg_id in ids:
+            msg = fc.build(msg_id, self.swarm.time_s, snap)
+            data += msg.pack(link.codec)
+            self.sent[msg_id] += 1
+        self._sendto(link, bytes(data), peers)
+        if self.lockstep is not None and name == "companion" and not HIGH_RATE_IDS.isdisjoint(ids):
+            self.lockstep.sent(i, _ms(self.swarm.time_s) * 1000, now_wall)
+
+    def _offer(self, i: int) -> None:
+        """Lockstep: vehicle i's high-rate state, now, to its companion again (it answers it)."""
+        fc = self.swarm.fcs[i]
+        ids = [m for m in HIGH_RATE_IDS if fc.stream_rate_hz("companion", m) > 0]
+        if ids:  # (with a heartbeat while the clock stands: a client waits for one before it starts)
+            heartbeat = [] if self.lockstep.started else [mavlink.MAVLINK_MSG_ID_HEARTBEAT]
+            self._send_batch(i, "companion", heartbeat + sorted(ids))
 
     # -- the loop ---------------------------------------------------------------------------
 
-    async def run(self, stop: asyncio.Event) -> None:
+    async def run(self, stop: asyncio.Event, duration_s: float | None = None) -> None:
+        """Fly until ``stop`` (or ``duration_s`` of simulated time)."""
         loop = asyncio.get_running_loop()
-        rate = self.swarm.physics_hz * self.speedup  # physics steps per wall second
         self.swarm.step()  # warm up (compiled kernels load on first use) before the clock starts
         self._send_due()
         # The ~10^5 long-lived objects of the imports would make every full garbage collection a
@@ -262,11 +303,31 @@ class SitlServer:
         gc.collect()
         gc.freeze()
         self.wall_start = loop.time()
-        boot = time.time() - self.swarm.time_s  # SYSTEM_TIME = the wall clock at start, then sim time
+        self.end_s = math.inf if duration_s is None else self.swarm.time_s + duration_s
+        if self.lockstep is None:  # SYSTEM_TIME = the wall clock at start, then sim time
+            self.boot_unix_s = math.floor((time.time() - self.swarm.time_s) * 1000.0) / 1000.0
         for fc in self.swarm.fcs:
-            fc.boot_unix_s = boot
+            fc.boot_unix_s = self.boot_unix_s
+        try:
+            if self.lockstep is None:
+                await self._run_wall_clock(stop, loop)
+            else:
+                await self._run_lockstep(stop, loop)
+        finally:
+            self.wall_elapsed = loop.time() - self.wall_start
+
+    def _step(self) -> None:
+        """One physics step, the telemetry it makes due, and what the autopilots have to say."""
+        self.swarm.step()
+        self._send_due()
+        for i, fc in enumerate(self.swarm.fcs):
+            if fc.outbox:
+                self._flush_outbox(i)
+
+    async def _run_wall_clock(self, stop: asyncio.Event, loop) -> None:
+        rate = self.swarm.physics_hz * self.speedup  # physics steps per wall second
         start_steps = self.swarm.steps
-        while not stop.is_set():
+        while not stop.is_set() and self.swarm.time_s < self.end_s:
             now = loop.time()
             target = start_steps + int((now - self.wall_start) * rate)
             behind = target - self.swarm.steps
@@ -276,11 +337,7 @@ class SitlServer:
                 if behind > MAX_BURST_STEPS:
                     self.overruns += 1
                 for _ in range(min(behind, MAX_BURST_STEPS)):
-                    self.swarm.step()
-                    self._send_due()
-                    for i, fc in enumerate(self.swarm.fcs):
-                        if fc.outbox:
-                            self._flush_outbox(i)
+                    self._step()
             next_wall = self.wall_start + (self.swarm.steps - start_steps + 1) / rate
             # asyncio's timers have millisecond resolution (epoll): wait coarsely while there is
             # time, serving I/O, then sleep the last stretch precisely so telemetry leaves on time.
@@ -291,7 +348,53 @@ class SitlServer:
             wait = next_wall - loop.time()
             if wait > 0:
                 time.sleep(wait)
-        self.wall_elapsed = loop.time() - self.wall_start
+
+    async def _run_lockstep(self, stop: asyncio.Event, loop) -> None:
+        ls = self.lockstep
+        self._resume = asyncio.Event()
+        fcs = self.swarm.fcs
+        report_wall, report_sim = loop.time(), self.swarm.time_s
+        told_missing = loop.time()
+        started = False
+        while not stop.is_set() and self.swarm.time_s < self.end_s:
+            if not ls.blocked:
+                for _ in range(MAX_BURST_STEPS):
+                    self._step()
+                    if ls.blocked or self.swarm.time_s >= self.end_s:
+                        break
+                await asyncio.sleep(0)  # the answers
+            else:
+                t0 = loop.time()
+                if not ls.started:
+                    for i in ls.missing():
+                        self._offer(i)
+                self._resume.clear()
+                try:
+                    await asyncio.wait_for(self._resume.wait(), LOCKSTEP_POLL_S)
+                except asyncio.TimeoutError:
+                    pass
+                now = loop.time()
+                ls.waited(now - t0)
+                offer, dropped = ls.overdue(time.monotonic(), self.swarm.time_s)
+                for i in offer:
+                    self._offer(i)
+                for i in dropped:
+                    self.say(f"lockstep: vehicle {fcs[i].sysid}'s companion has not answered for "
+                             f"{ls.options.timeout_s:g} s of wall time: it has died or hung; the vehicle flies on "
+                             f"without it (its failsafe counts on simulated time) until it answers again", warning=True)
+                if not ls.started and now - told_missing > 5.0:
+                    told_missing = now
+                    self.say("lockstep: the clock waits for the companions of vehicles "
+                             + ", ".join(str(fcs[i].sysid) for i in ls.missing()))
+            now = loop.time()
+            if ls.started and not started:
+                started = True
+                self._join_wall_s, self._join_sim_s = now - self.wall_start, self.swarm.time_s
+                report_wall, report_sim = now, self.swarm.time_s
+            if now - report_wall >= REPORT_EVERY_S and ls.started:
+                rtf = (self.swarm.time_s - report_sim) / (now - report_wall)
+                self.say(f"lockstep: t = {self.swarm.time_s:.1f} s simulated, real-time factor {rtf:.2f}")
+                report_wall, report_sim = now, self.swarm.time_s
 
     def stats(self) -> dict:
         sim = self.swarm.time_s
@@ -305,7 +408,9 @@ class SitlServer:
                 "datagrams_tx": {n: lk.datagrams_tx for n, lk in self.links[i].items()},
                 "armed": fc.armed, "mode": fc.mode.name,
             })
-        return {
+            if self.lockstep is not None:
+                vehicles[-1]["lockstep_waited_wall_s"] = round(self.lockstep.waited_wall_s[i], 3)
+        out = {
             "sim_time_s": sim,
             "wall_time_s": self.wall_elapsed,
             "speedup_requested": self.speedup,
@@ -317,3 +422,13 @@ class SitlServer:
                               for k, v in sorted(self.sent.items())},
             "vehicles": vehicles,
         }
+        if self.lockstep is not None:
+            ls = self.lockstep
+            clock_wall = self.wall_elapsed - self._join_wall_s
+            out["lockstep"] = {
+                "started": ls.started,
+                "join_wall_s": round(self._join_wall_s, 3),
+                "real_time_factor": (sim - self._join_sim_s) / clock_wall if ls.started and clock_wall > 0 else None,
+                "left": [{"sysid": self.swarm.fcs[i].sysid, "sim_time_s": t} for i, t in ls.left],
+            }
+        return out

@@ -75,7 +75,7 @@ class SitlSwarm:
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
         self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot) for i in range(n)]
-        self.rng = np.random.default_rng(seed)
+        self.seed = seed
         self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
@@ -113,8 +113,8 @@ class SitlSwarm:
                          fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs])
         pos, vel_e, vel_b = obs.position_m, obs.velocity_e_m_s, obs.velocity_b_m_s
         eta, rate = obs.euler_rad, obs.rate_b_rad_s
-        if np.any(sig > 0):
-            noise = self.rng.standard_normal((self.n, 4, 3)) * sig[:, :, None]
+        if np.any(sig > 0):  # (drawn per step from the seed: the same whenever a snapshot is taken)
+            noise = np.random.default_rng((self.seed, self.steps)).standard_normal((self.n, 4, 3)) * sig[:, :, None]
             pos, vel_e, eta, rate = pos + noise[:, 0], vel_e + noise[:, 1], eta + noise[:, 2], rate + noise[:, 3]
             vel_b = vel_b + noise[:, 1]
         quat = quaternion_from_euler(eta) if np.any(sig[:, 2] > 0) else self.plant.state[:, QUAT].copy()

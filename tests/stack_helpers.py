@@ -1,6 +1,7 @@
 """Observers for whole-stack tests: a ground station on a companion's link (pymavlink, real UDP) and
 a Zenoh peer on the swarm's bus (a real session). Both record in background threads; both stop
-when their context ends."""
+when their context ends. Both stamp what they hear with the flight controllers' clock, as the
+Recorder does, so that a test on simulated time (lockstep) reads its timeline in plan time."""
 
 from __future__ import annotations
 
@@ -24,6 +25,9 @@ class GroundStation:
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=sysid,
                                                source_component=compid)
         self.messages: list[tuple[float, object]] = []
+        """(the flight controller's time when heard [Unix s; NaN before it was heard], message)"""
+        self._fc_offset: float | None = None
+        self._fc_now = float("nan")
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -47,8 +51,19 @@ class GroundStation:
                 next_hello = now + 1.0
             msg = self.conn.recv_match(blocking=True, timeout=0.1)
             if msg is not None and msg.get_type() != "BAD_DATA":
+                self._clock(msg)
                 with self._lock:
-                    self.messages.append((time.time(), msg))
+                    self.messages.append((self._fc_now, msg))
+
+    def _clock(self, msg) -> None:
+        """The flight controller's clock from what it forwards (SYSTEM_TIME, ATTITUDE)."""
+        if msg.get_srcComponent() != 1:
+            return
+        if msg.get_type() == "SYSTEM_TIME" and msg.time_unix_usec > 0:
+            self._fc_offset = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+            self._fc_now = msg.time_unix_usec / 1e6
+        elif msg.get_type() == "ATTITUDE" and self._fc_offset is not None:
+            self._fc_now = self._fc_offset + msg.time_boot_ms / 1000.0
 
     def send(self, msg) -> None:
         with self._lock:
@@ -85,7 +100,8 @@ class BusObserver:
         connect = [f"tcp/127.0.0.1:{zenoh_base + i}" for i in range(1, n + 1)]
         self.swarm = swarm
         self.session = zenoh.open(peer_config([], connect))
-        self.statuses: list[tuple[float, int, str, str]] = []   # (time, agent, status, reason)
+        self.statuses: list[tuple[float, int, str, str]] = []
+        """(since: the flight controller's time the status began [Unix s], agent, status, reason)"""
         self.health: dict[int, list[dict]] = defaultdict(list)
         self._lock = threading.Lock()
         self._subs = [
@@ -104,7 +120,7 @@ class BusObserver:
     def _on_status(self, sample) -> None:
         msg = json.loads(sample.payload.to_bytes())
         with self._lock:
-            self.statuses.append((time.time(), int(msg["agent"]), msg["status"], msg.get("reason", "")))
+            self.statuses.append((float(msg["since"]), int(msg["agent"]), msg["status"], msg.get("reason", "")))
 
     def _on_health(self, sample) -> None:
         msg = json.loads(sample.payload.to_bytes())
@@ -139,6 +155,30 @@ def small_plan(spec: dict, drones: int, name: str) -> dict:
     spec = copy.deepcopy(spec)
     spec.update(name=name, drones=drones, topology={"switch_period_s": 5.0, "families": ["two-chain"]})
     return spec
+
+
+def status_changes(statuses, agent: int) -> list[tuple[float, str, str]]:
+    """An agent's status changes (since [Unix s], status, reason); the 1 Hz repeats dropped."""
+    out: list[tuple[float, str, str]] = []
+    for since, a, status, reason in statuses:
+        if a == agent and (not out or out[-1][1] != status or out[-1][0] != since):
+            out.append((since, status, reason))
+    return out
+
+
+def wait_sim(clock, t_unix: float, stack=None, wall_timeout_s: float = 240.0, poll_s: float = 0.1,
+             dead_ok: tuple[str, ...] = ()) -> None:
+    """Wait until the flight controllers' clock (``clock()``, e.g. ``Recorder.now``) reaches
+    ``t_unix``, checking that every process of ``stack`` (but those named in ``dead_ok``) still
+    runs; fail after ``wall_timeout_s`` of wall time (a stack on simulated time runs as fast as
+    the machine lets it)."""
+    deadline = time.monotonic() + wall_timeout_s
+    while not clock() >= t_unix:
+        assert time.monotonic() < deadline, f"the simulated clock did not reach {t_unix:.1f} within {wall_timeout_s} s"
+        if stack is not None:
+            dead = [name for name, up in stack.alive().items() if not up and name not in dead_ok]
+            assert not dead, f"{dead} exited early: {[stack.log(n)[-2000:] for n in dead]}"
+        time.sleep(poll_s)
 
 
 def wait_for(cond, timeout_s: float, what: str, poll_s: float = 0.1) -> None:

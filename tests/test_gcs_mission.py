@@ -1,6 +1,7 @@
 """The ground station's plans and leader commands over MAVLink, against the real stack: two drones
-flying (sitl up, two companions, Zenoh on loopback), the ground station on UDP, MAVProxy as a
-third-party client, and a relay of the test's own that cuts an upload in the middle."""
+flying (sitl up in lockstep, their companions in one process, Zenoh), the ground station on UDP,
+MAVProxy as a third-party client, and a relay of the test's own that cuts an upload in the middle.
+Times of plan starts and leader moves are on the flight controllers' clock (the Recorder's)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanItem, decode_plan, encode_plan, field_value
 
 
-from .stack_helpers import flying, small_plan, wait_for
+from .stack_helpers import flying, small_plan, wait_for, wait_sim
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,11 +97,12 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
     plan_file = tmp_path / "pair.toml"
     plan_file.write_text(tomli_w.dumps(spec))
     flying_id = decode_plan(encode_plan(tomllib.loads(plan_file.read_text())))[1]
-    with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=10.0) as stack, Recorder(stack.manifest) as rec:
+    with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=5.0, lockstep=True, agents_per_process=0) as stack, \
+            Recorder(stack.manifest) as rec:
         with CuttableRelay(stack.gcs_ports[1]) as relay, \
                 GroundLink({1: stack.endpoints()[1], 2: f"udpout:127.0.0.1:{relay.port}"}, tlog=tmp_path / "gcs.tlog") as link:
             wait_for(lambda: flying(link, 1) and flying(link, 2), 90, "both drones in formation")
-            time.sleep(12.0)  # the entry is over at 15 s of plan time
+            wait_sim(rec.now, stack.start_at + 15.0, stack)  # the entry is over at 15 s of plan time
 
             # an infeasible plan sent by a raw client: refused with the code and the reason
             bad = copy.deepcopy(spec)  # a velocity offset with a constant position: fails (76)
@@ -138,7 +139,7 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             other = copy.deepcopy(spec)
             other["design"]["coupling_margin"] = 2.0
             assert missions.upload(link, 1, encode_plan(other)).ok
-            result, why = start(link, 1, decode_plan(encode_plan(other))[1], time.time() + 2.0)
+            result, why = start(link, 1, decode_plan(encode_plan(other))[1], rec.now() + 2.0)
             assert result == mavlink.MAV_RESULT_DENIED and "not design; land first" in why
 
             # the new formation (radius 8 m instead of 10) takes over on both at one time: the two
@@ -146,14 +147,14 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             # chosen at a whole turn of the old one (1 rad/s), so only the radius changes
             assert missions.upload(link, 1, items).ok
             pid = decode_plan(items)[1]
-            at = stack.start_at + 2 * math.pi * math.ceil((time.time() + 2.0 - stack.start_at) / (2 * math.pi))
+            at = stack.start_at + 2 * math.pi * math.ceil((rec.now() + 2.0 - stack.start_at) / (2 * math.pi))
             result, why = start(link, 1, pid, at + math.pi)  # half a turn off: 18 m from the old formation
             assert result == mavlink.MAV_RESULT_DENIED and "start it where the two meet" in why
             for i in (1, 2):
                 result, why = start(link, i, pid, at)
                 assert result == mavlink.MAV_RESULT_ACCEPTED, why
-            time.sleep(max(0.0, at + 8.0 - time.time()))
-            t_now = time.time() - stack.start_at
+            wait_sim(rec.now, at + 8.0, stack)
+            t_now = rec.now() - stack.start_at
             _, pos, _ = rec.arrays(stack.start_at, t_from=t_now - 1.5, t_to=t_now - 0.5)
             np.testing.assert_allclose(np.linalg.norm(pos[:, 0] - pos[:, 1], axis=1), 16.0, atol=0.1)
             assert held_plan_id(link, 1) == held_plan_id(link, 2) == pid
@@ -176,8 +177,8 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
                                            [2.0, float("nan"), at, 0.0, 11.0, -5.0, 0.0])
                 assert result == mavlink.MAV_RESULT_ACCEPTED, why
             move_s = 1.875 * 6.0 / 2.0
-            time.sleep(max(0.0, at + move_s + 4.0 - link.param(1, COMP_ONBOARD, "PLAN_T_S")))
-            t_now = time.time() - stack.start_at  # the last second, from the flight controllers' own telemetry
+            wait_sim(rec.now, stack.start_at + at + move_s + 4.0, stack)
+            t_now = rec.now() - stack.start_at  # the last second, from the flight controllers' own telemetry
             _, pos, _ = rec.arrays(stack.start_at, t_from=t_now - 1.5, t_to=t_now - 0.5)
             np.testing.assert_allclose(pos.mean(axis=1), np.tile([11.0, -5.0, 20.0], (len(pos), 1)), atol=0.1)
             assert flying(link, 1) and flying(link, 2)

@@ -127,7 +127,7 @@ def test_the_companion_takes_only_signed_frames_from_the_ground(tmp_path, paper_
     keyfile = tmp_path / "swarm.key"
     keyfile.write_text(KEY.hex() + "\n")
     items = encode_plan(small_plan(paper_spec, 1, "solo"))
-    with Stack(None, tmp_path / "stack", 1, companion_args={1: ["--signing-key", str(keyfile)]}) as stack:
+    with Stack(None, tmp_path / "stack", 1, companion_args={1: ["--signing-key", str(keyfile)]}, lockstep=True) as stack:
         endpoints = stack.endpoints()
 
         # without the key: heard (heartbeats pass unsigned), but no plan, command or arm gets through

@@ -1,0 +1,134 @@
+"""The flight controller's clock, as its telemetry tells it, and the answers it is owed in lockstep.
+
+A companion runs on its flight controller's clock: SYSTEM_TIME gives the offset between the
+controller's boot time and Unix time, and each sample's ``time_boot_ms`` says how far that clock
+has gone. Plan time, start times, leader commands and every timeout of the protocol are read on
+it, so the same code runs in real time and on a simulator's clock (lockstep), where simulated
+seconds may pass faster or slower than the wall's.
+
+In lockstep (the flight controller's SIM_LOCKSTEP parameter is 1) the simulator steps on only
+when the companion has answered the newest state it was sent: with its actuator command, whose
+``time_usec`` is that state's boot time, or with a command of NaNs when it commands nothing.
+Answers leave at the end of the loop's turn, after whatever the same instant woke (an arm command
+sent at a start time reaches the flight controller before the answer, so at the same step).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import math
+import time
+from collections.abc import Callable
+
+REBOOT_JUMP_MS = 1000
+"""A sample this much older than the newest is a restarted flight controller, not a repeat."""
+
+
+class FcClock:
+    """Kept in whole microseconds: Unix times near 1.8e9 s hold no better than a quarter of a
+    microsecond in a float, so plan times computed from them would differ in their last bits from
+    one run to the next (and two lockstep runs would not be the same)."""
+
+    def __init__(self) -> None:
+        self.offset_us: int | None = None
+        """Unix time minus the flight controller's boot time [us] (from SYSTEM_TIME)."""
+        self.boot_ms: int | None = None
+        """The newest sample's flight-controller time [ms since its boot]."""
+        self._waiters: list = []
+        self._order = itertools.count()
+
+    @property
+    def known(self) -> bool:
+        return self.offset_us is not None
+
+    def set_offset(self, time_unix_usec: int, time_boot_ms: int) -> None:
+        """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]."""
+        self.offset_us = int(time_unix_usec) - int(time_boot_ms) * 1000
+
+    def unix(self, boot_ms: int) -> float:
+        """A flight-controller time as Unix time (the wall clock until SYSTEM_TIME was heard)."""
+        return time.time() if self.offset_us is None else (self.offset_us + boot_ms * 1000) / 1e6
+
+    def now(self) -> float:
+        """The flight controller's time now, as Unix time: that of its newest sample."""
+        if self.offset_us is None or self.boot_ms is None:
+            return time.time()
+        return (self.offset_us + self.boot_ms * 1000) / 1e6
+
+    def plan_time(self, boot_ms: int, start_unix_s: float) -> float:
+        """A flight-controller time as plan time: seconds since ``start_unix_s``, exactly."""
+        if self.offset_us is None:
+            return time.time() - start_unix_s
+        return (self.offset_us + boot_ms * 1000 - round(start_unix_s * 1e6)) / 1e6
+
+    def _now_us(self) -> int | None:
+        return None if self.offset_us is None or self.boot_ms is None else self.offset_us + self.boot_ms * 1000
+
+    def advance(self, boot_ms: int) -> None:
+        """A sample of time ``boot_ms`` came: wake whoever waits for that time."""
+        self.boot_ms = boot_ms
+        now_us = self._now_us()
+        if now_us is None:
+            return
+        while self._waiters and self._waiters[0][0] <= now_us:
+            fut = heapq.heappop(self._waiters)[2]
+            if not fut.done():
+                fut.set_result(None)
+
+    async def until(self, t_unix: float) -> None:
+        """Wait until the flight controller's clock reaches ``t_unix``."""
+        t_us = round(t_unix * 1e6)
+        now_us = self._now_us()
+        if now_us is not None and now_us >= t_us:
+            return
+        fut = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._waiters, (t_us, next(self._order), fut))
+        await fut
+
+
+class Answers:
+    """Lockstep's books: the newest state the flight controller sent, and what was answered."""
+
+    def __init__(self, write: Callable[[bytes], None]) -> None:
+        self.lockstep = False
+        self._write = write
+        self.due_ms = -1        # the newest high-rate telemetry time received [boot ms]
+        self.answered_ms = -1   # the newest answered
+        self._last_frame: bytes | None = None
+        self._repeat = False
+
+    def telemetry(self, boot_ms: int) -> None:
+        """A high-rate message of time ``boot_ms`` (several may share one instant)."""
+        if boot_ms < self.due_ms - REBOOT_JUMP_MS:  # a restarted flight controller: a new clock
+            self.answered_ms = -1
+            self.due_ms = boot_ms
+        elif boot_ms > self.due_ms:
+            self.due_ms = boot_ms
+        if boot_ms <= self.answered_ms:
+            self._repeat = True  # sent again: the answer may have been lost
+
+    def command(self, boot_ms: int, frame: bytes) -> None:
+        """Send an actuator command answering ``boot_ms`` (after this turn of the loop, in lockstep)."""
+        self.answered_ms = boot_ms
+        self._last_frame = frame
+        if self.lockstep:
+            asyncio.get_running_loop().call_soon(self._write, frame)
+        else:
+            self._write(frame)
+
+    def settle(self, busy: bool, no_command: Callable[[int], bytes]) -> None:
+        """After the telemetry was taken: in lockstep, answer what is due and not answered (unless
+        a tick is still ``busy`` waiting for neighbours), and answer a repeated state again."""
+        repeat, self._repeat = self._repeat, False
+        if not self.lockstep or busy:
+            return
+        if self.due_ms > self.answered_ms:
+            self.command(self.due_ms, no_command(self.due_ms))
+        elif repeat and self._last_frame is not None:
+            asyncio.get_running_loop().call_soon(self._write, self._last_frame)
+
+
+NO_COMMAND = [math.nan] * 8
+"""Controls of an answer that commands nothing."""

@@ -1,0 +1,105 @@
+"""Lockstep: the simulated clock advances only when every vehicle's companion has answered.
+
+The SITL sends a vehicle's high-rate state (ATTITUDE, LOCAL_POSITION_NED, ...) on its companion
+link; the companion answers with SET_ACTUATOR_CONTROL_TARGET whose ``time_usec`` is the
+telemetry time it answers (boot time, microseconds), all controls NaN when it commands nothing.
+The plant steps on only when every member has answered what it was sent, so a run is as fast as
+the machine allows and behaves the same however slow or busy the machine is (PX4 and ArduPilot
+SITL do the same with their simulators).
+
+Members are the vehicles whose companions answer. The clock starts when every vehicle of the
+process has answered once (it stands still until then, offering the current state again and
+again, and says whom it waits for). Only a wall-clock watchdog takes a member out: a companion
+silent for ``timeout_s`` has died or hung; the vehicle then flies on without it and its own
+failsafe counts on simulated time. A member that answers again is back in. An answer overdue by
+``reoffer_s`` gets its state sent again (a datagram lost on a loaded machine costs a re-send,
+not the run). This module keeps the books; ``server.py`` moves the datagrams.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from triswarm.protocol.mavlink import mavlink
+
+HIGH_RATE_IDS = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                           mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
+                           mavlink.MAVLINK_MSG_ID_HIGHRES_IMU})
+"""A datagram on a companion link with any of these is a state the companion must answer."""
+
+
+@dataclass(frozen=True)
+class LockstepOptions:
+    timeout_s: float = 10.0
+    """Wall time without an answer after which a companion counts as dead and leaves lockstep [s]."""
+    reoffer_s: float = 0.5
+    """Wall time after which an unanswered state is sent again [s]."""
+
+
+@dataclass
+class Lockstep:
+    n: int
+    options: LockstepOptions = field(default_factory=LockstepOptions)
+    started: bool = False
+    """Every vehicle has answered once: the clock runs."""
+    members: set[int] = field(default_factory=set)
+    awaiting: dict[int, list] = field(default_factory=dict)
+    """Vehicle index -> [telemetry time it must answer (us), wall time sent, wall time last offered]."""
+    last_sent_us: dict[int, int] = field(default_factory=dict)
+    waited_wall_s: list[float] = field(default_factory=list)
+    """Per vehicle: wall time the clock stood waiting for it alone or with others [s]."""
+    left: list[tuple[int, float]] = field(default_factory=list)
+    """(vehicle index, simulated time [s]) each time a member was taken out by the watchdog."""
+
+    def __post_init__(self) -> None:
+        self.waited_wall_s = [0.0] * self.n
+
+    @property
+    def blocked(self) -> bool:
+        return not self.started or bool(self.awaiting)
+
+    def sent(self, i: int, t_us: int, now_wall: float) -> None:
+        """Vehicle i's companion was sent the state of telemetry time t_us."""
+        self.last_sent_us[i] = t_us
+        if i in self.members and i not in self.awaiting:
+            self.awaiting[i] = [t_us, now_wall, now_wall]
+
+    def answered(self, i: int, t_us: int) -> str | None:
+        """Vehicle i's companion answered telemetry time t_us. Returns what changed ("started",
+        "back": vehicle i is a member again), or None."""
+        said = None
+        if i not in self.members and t_us >= self.last_sent_us.get(i, 0):
+            self.members.add(i)
+            if not self.started and len(self.members) == self.n:
+                self.started = True
+                said = "started"
+            elif self.started:
+                said = "back"
+        waiting = self.awaiting.get(i)
+        if waiting is not None and t_us >= waiting[0]:
+            del self.awaiting[i]
+        return said
+
+    def waited(self, wall_s: float) -> None:
+        """The clock stood for ``wall_s``: charge it to every vehicle it waited for."""
+        for i in (self.awaiting if self.started else set(range(self.n)) - self.members):
+            self.waited_wall_s[i] += wall_s
+
+    def overdue(self, now_wall: float, sim_s: float) -> tuple[list[int], list[int]]:
+        """(vehicles whose state to send again, vehicles taken out now by the watchdog)."""
+        offer, dropped = [], []
+        for i, waiting in list(self.awaiting.items()):
+            t_us, sent_wall, offered_wall = waiting
+            if now_wall - sent_wall > self.options.timeout_s:
+                del self.awaiting[i]
+                self.members.discard(i)
+                self.left.append((i, sim_s))
+                dropped.append(i)
+            elif now_wall - offered_wall > self.options.reoffer_s:
+                waiting[2] = now_wall
+                offer.append(i)
+        return offer, dropped
+
+    def missing(self) -> list[int]:
+        """Before the clock starts: the vehicles whose companions have not answered yet."""
+        return sorted(set(range(self.n)) - self.members)

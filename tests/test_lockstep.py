@@ -1,0 +1,156 @@
+"""`triswarm sitl up --lockstep` over real UDP and real MAVLink framing, with the test as the
+companions: the clock stands until every vehicle's companion answers, then advances one control
+step per round of answers and never without them; an unanswered state is sent again; a companion
+that stays silent is taken out by the wall-clock watchdog, and its vehicle's failsafe then runs on
+simulated time."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+from pymavlink import mavutil
+
+from triswarm.protocol.mavlink import CustomMode
+
+from .sitl_helpers import command, sitl_process
+
+M = mavutil.mavlink
+NAN8 = [math.nan] * 8
+
+
+class Companion:
+    """A companion of the test's own on a vehicle's companion link (pymavlink, real UDP)."""
+
+    def __init__(self, url: str, sysid: int) -> None:
+        self.sysid = sysid
+        self.conn = mavutil.mavlink_connection(url, source_system=sysid, source_component=191)
+
+    def hello(self) -> None:
+        self.conn.mav.heartbeat_send(M.MAV_TYPE_ONBOARD_CONTROLLER, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def state(self, timeout_s: float = 3.0) -> int | None:
+        """The time [boot ms] of the next LOCAL_POSITION_NED, or None."""
+        m = self.conn.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=timeout_s)
+        return None if m is None else m.time_boot_ms
+
+    def answer(self, boot_ms: int, controls=NAN8) -> None:
+        self.conn.mav.set_actuator_control_target_send(boot_ms * 1000, 0, self.sysid, 1, controls)
+
+    def drain(self) -> list:
+        """Everything waiting (a few reads: pymavlink returns one message at a time)."""
+        out = []
+        for _ in range(1000):
+            m = self.conn.recv_match(blocking=False)
+            if m is None:
+                break
+            out.append(m)
+        return out
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def test_the_clock_waits_for_every_companion_and_steps_only_on_their_answers(tmp_path):
+    with sitl_process(tmp_path, 2, "--lockstep", "--rate-hz", "200") as (manifest, _):
+        assert manifest["clock"]["lockstep"]
+        a, b = (Companion(v["links"]["companion"]["pymavlink"], v["sysid"]) for v in manifest["vehicles"])
+        try:
+            a.hello()
+            t0 = a.state()
+            assert t0 is not None, "no state offered while the clock stands"
+            a.answer(t0)  # vehicle 1 is in; vehicle 2's companion has not spoken: the clock stands
+            time.sleep(1.0)
+            assert {m.time_boot_ms for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED"} <= {t0}
+            b.hello()
+            t0b = b.state()
+            assert t0b == t0
+            b.answer(t0b)  # every companion has answered: the clock runs, one control step (5 ms) at a time
+            times = []
+            for _ in range(20):
+                ta, tb = a.state(), b.state()
+                assert ta == tb is not None
+                times.append(ta)
+                if len(times) == 10:
+                    time.sleep(0.5)  # a pause of the companions is a pause of the clock
+                    assert not [m for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED"]
+                a.answer(ta)
+                b.answer(tb)
+            assert [t1 - t2 for t1, t2 in zip(times[1:], times)] == [5] * 19
+            # one companion late: nothing moves until it answers
+            ta, tb = a.state(), b.state()
+            a.answer(ta)
+            time.sleep(0.3)
+            assert not [m for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED" and m.time_boot_ms > ta]
+            # its state is offered again (same instant) while the clock waits for it
+            b.conn.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1.0)  # (drain what is there)
+            again = b.state(timeout_s=2.0)
+            assert again == tb
+            b.answer(tb)
+            assert a.state() == ta + 5
+        finally:
+            a.close()
+            b.close()
+    # the answers commanded nothing (all NaN): counted as such, never as bad frames
+    import json
+
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    for v in stats["vehicles"]:
+        assert v["counters"]["actuator_no_command"] >= 22 and v["drops"] == 0, v
+    assert stats["lockstep"]["started"] and stats["lockstep"]["left"] == []
+
+
+def test_a_silent_companion_leaves_lockstep_and_its_failsafe_runs_on_simulated_time(tmp_path):
+    with sitl_process(tmp_path, 2, "--lockstep", "--rate-hz", "200", "--lockstep-timeout-s", "1") as (manifest, _):
+        a, b = (Companion(v["links"]["companion"]["pymavlink"], v["sysid"]) for v in manifest["vehicles"])
+        try:
+            for c in (a, b):
+                c.hello()
+                c.answer(c.state())
+            # vehicle 2: armed (on the ground: its companion's idle command), in EXTERNAL
+            assert command(b.conn, 2, M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_ACCEPTED
+            idle = [0.05, 0.05, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
+            for _ in range(10):
+                ta, tb = a.state(), b.state()
+                a.answer(ta)
+                b.answer(tb, idle)
+            # vehicle 2's companion stops answering (its link stays: a hung controller): after 1 s of
+            # wall time the clock runs on without it
+            t_silent = tb
+            t_wall = time.monotonic()
+            ta = a.state()
+            a.answer(ta)
+            while (ta := a.state()) is not None and ta < t_silent + 2000:
+                a.answer(ta)
+            assert ta is not None and time.monotonic() - t_wall >= 1.0
+            # and its flight controller's failsafe counted 10 s of simulated time (DISARM_PRFLT_S
+            # on the ground): it disarmed, in simulated time, while vehicle 1's companion set the pace
+            texts = []
+            while (ta := a.state()) is not None and ta < t_silent + 12000:
+                a.answer(ta)
+                texts += [m.text for m in b.drain() if m.get_type() == "STATUSTEXT"]
+                if ta % 1000 == 0:
+                    b.hello()
+            assert any("no actuator command for 10 s on ground" in t for t in texts), texts
+        finally:
+            a.close()
+            b.close()
+    import json
+
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["lockstep"]["left"][0]["sysid"] == 2  # (vehicle 1's may follow: the test stops answering at its end)
+    assert not stats["vehicles"][1]["armed"] and stats["vehicles"][1]["mode"] == CustomMode.EXTERNAL.name
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--lockstep", "--speedup", "2"], "--speedup and --lockstep exclude each other"),
+    (["--lockstep", "--lockstep-timeout-s", "0"], "--lockstep-timeout-s must be positive"),
+])
+def test_bad_lockstep_options_are_one_sentence(tmp_path, args, message):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", "1", "--manifest",
+                        str(tmp_path / "m.json"), *args], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
