@@ -139,16 +139,6 @@ class RotatingPolygon(Formation):
         return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=att)
 
     def kinematics(self, t_s: float) -> Kinematics:
-        """(The last few instants are kept: the agents of one process ask for the same ones.)"""
-        recent = self._recent
-        k = recent.get(t_s)
-        if k is None:
-            k = recent[t_s] = self._kinematics(t_s)
-            if len(recent) > 8:
-                recent.popitem(last=False)
-        return k
-
-    def _kinematics(self, t_s: float) -> Kinematics:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
         ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
         s, c = np.sin(ang), np.cos(ang)
@@ -159,12 +149,21 @@ class RotatingPolygon(Formation):
         p_dot[:, 0], p_dot[:, 1] = R * w * c, -R * w * s
         p_ddot[:, 0], p_ddot[:, 1] = -R * w * w * s, -R * w * w * c
         z3 = np.zeros((n, 3))
-        for a in (p, p_dot, p_ddot, z3):
-            a.setflags(write=False)
         return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """``kinematics(t).offsets()`` written straight into h and h_dot (the control loop's hot path)."""
+        """``kinematics(t).offsets()`` written straight into h and h_dot (the control loop's hot
+        path). The last few instants are kept, read-only: the agents of one companion process ask
+        for the same ones."""
+        recent = self._recent
+        found = recent.get(t_s)
+        if found is None:
+            found = recent[t_s] = self._offsets(t_s)
+            if len(recent) > 8:
+                recent.popitem(last=False)
+        return found
+
+    def _offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
         ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
         s, c = np.sin(ang), np.cos(ang)
@@ -175,6 +174,8 @@ class RotatingPolygon(Formation):
         h[:, 9], h[:, 10], h[:, 11] = R * s, R * c, self.altitude_m  # p
         h_dot[:, 0], h_dot[:, 1] = -R * w * w * s, -R * w * w * c    # p_ddot
         h_dot[:, 9:11] = h[:, 0:2]                              # p_dot
+        h.setflags(write=False)
+        h_dot.setflags(write=False)
         return h, h_dot
 
 
