@@ -23,7 +23,7 @@ from triswarm.protocol.mavlink import CustomMode
 from .conftest import PAPER_PLAN_FILE
 from .stack_helpers import judge, wait_sim
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 END = 50.0
 PRIORITY = ["chrt", "--fifo", "20"]
 """The SITL and the companions run at a real-time priority (SCHED_FIFO), as flight software does: a
