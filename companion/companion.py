@@ -309,20 +309,34 @@ class Companion:
             self._items = (spec, encode_plan(spec))
         return self._items[1]
 
-    def _receive_plan(self, items: list[PlanItem]) -> tuple[int, str]:
-        """A whole mission came: check it as `plan check` does; stage it if it flies."""
+    def _receive_plan(self, items: list[PlanItem]) -> tuple[int, str] | asyncio.Future:
+        """A whole mission came: check it as `plan check` does (but the flight); stage it if it
+        passes. The check runs off the loop (at 200 drones it takes longer than the flight
+        controller's failsafe would wait for the next command): the answer is a future."""
         try:
             spec, pid = decode_plan(items)
             plan = plan_from_dict(spec, "uploaded plan")
             if not 1 <= self.agent <= plan.n_agents:
                 raise PlanError(f"uploaded plan: agent {self.agent} is not in it ({plan.n_agents} drones)")
-            plan.check()
         except PlanTransferError as exc:
             return exc.ack_code, f"plan refused: {exc}"
         except (PlanError, ParameterError, ValueError) as exc:
             return mavlink.MAV_MISSION_INVALID, f"plan refused: {exc}"
-        self.staged = (plan, pid)
-        return mavlink.MAV_MISSION_ACCEPTED, f"plan {plan.name} {pid:08x} received; waiting for its start"
+        answer = self.loop.create_future()
+
+        def checked(done: asyncio.Future) -> None:
+            exc = done.exception()
+            if isinstance(exc, (PlanError, ParameterError, ValueError)):
+                answer.set_result((mavlink.MAV_MISSION_INVALID, f"plan refused: {exc}"))
+            elif exc is not None:  # a bug, shown as one
+                self.log.error("plan check failed", exc_info=exc)
+                answer.set_result((mavlink.MAV_MISSION_ERROR, f"plan check failed: {exc.__class__.__name__}: {exc}"))
+            else:
+                self.staged = (plan, pid)
+                answer.set_result((mavlink.MAV_MISSION_ACCEPTED, f"plan {plan.name} {pid:08x} received; waiting for its start"))
+
+        self.loop.run_in_executor(None, plan.check).add_done_callback(checked)
+        return answer
 
     def _clear_plans(self) -> tuple[int, str]:
         if self.phase in (Phase.FLYING, Phase.HOLDING):
