@@ -6,7 +6,7 @@ One tick of an agent, at time t with measured output y = (eta, lambda):
     v     = protocol_input(...)              # (72), from own and neighbours' xi at t + lead_s
     act   = controller.actuate(v)            # rotor speeds and servo angles to send now
 
-What this adds to the paper's law, and why (see README, "Control design"):
+What this adds to the paper's law, and why (see docs/control-design.md):
 
 * Servo delay. The servos act d = servo_delay_s after their command, the motors at once. The motor
   command is held back by the same d in software, which turns the mixed delay into a pure input

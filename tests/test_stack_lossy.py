@@ -7,7 +7,7 @@ controllers' telemetry.
 TCP (declarations, liveliness, status) is delayed but not dropped here: at 20 % segment loss TCP's
 retransmission back-off outlasts Zenoh's 1 s lease now and then, a session closes and reconnects, and
 the agents that lose their path to the leader hold for a moment. That case is not handled yet (see
-the README)."""
+docs/companion.md, "Absent neighbours, hold, rejoin")."""
 
 import json
 import os
