@@ -62,7 +62,7 @@ def sim(
     drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only; the circle grows "
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
-    max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default 12000).")] = None,
+    max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
     noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
     mismatch: Annotated[float, typer.Option(help="Plant mass/inertia +PCT %, k_f -PCT/2 % against the controller's model.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed for start positions and noise.")] = 0,

@@ -58,7 +58,7 @@ def demo(
                                                 "allows, the same however busy it is.")] = False,
     agents_per_process: Annotated[int, typer.Option(help="Agents per companion process (0: all in one).")] = 0,
 ) -> None:
-    """The paper's case study, whole stack, on this machine (sitl, six companions, the ground station)."""
+    """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)

@@ -139,3 +139,15 @@ def test_sim_refuses_an_uncertified_schedule_unless_forced(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stderr.startswith("triswarm: warning: ") and "topology schedule cannot be certified" in r.stderr
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["drones"] == 30
+
+
+def test_the_cli_reference_is_the_clis_own_help():
+    """docs/cli.md is generated from the CLI (make docs): it must say what --help says today."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "gen_cli_docs.py"), "--check"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
