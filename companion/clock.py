@@ -9,8 +9,10 @@ seconds may pass faster or slower than the wall's.
 In lockstep (the flight controller's SIM_LOCKSTEP parameter is 1) the simulator steps on only
 when the companion has answered the newest state it was sent: with its actuator command, whose
 ``time_usec`` is that state's boot time, or with a command of NaNs when it commands nothing.
-Answers leave at the end of the loop's turn, after whatever the same instant woke (an arm command
-sent at a start time reaches the flight controller before the answer, so at the same step).
+An answer leaves as soon as it is ready, so that the simulator takes it in while the companion is
+still at work on its other agents; when the state woke a wait (a start time: an arm command to send)
+it leaves at the end of the loop's turn instead, after whatever the instant woke, which then reaches
+the flight controller before the answer, at the same step.
 """
 
 from __future__ import annotations
@@ -66,16 +68,17 @@ class FcClock:
     def _now_us(self) -> int | None:
         return None if self.offset_us is None or self.boot_ms is None else self.offset_us + self.boot_ms * 1000
 
-    def advance(self, boot_ms: int) -> None:
-        """A sample of time ``boot_ms`` came: wake whoever waits for that time."""
+    def advance(self, boot_ms: int) -> bool:
+        """A sample of time ``boot_ms`` came: wake whoever waits for that time. True if it woke any."""
         self.boot_ms = boot_ms
         now_us = self._now_us()
-        if now_us is None:
-            return
-        while self._waiters and self._waiters[0][0] <= now_us:
+        woke = False
+        while now_us is not None and self._waiters and self._waiters[0][0] <= now_us:
             fut = heapq.heappop(self._waiters)[2]
             if not fut.done():
                 fut.set_result(None)
+                woke = True
+        return woke
 
     async def until(self, t_unix: float) -> None:
         """Wait until the flight controller's clock reaches ``t_unix``."""
@@ -98,6 +101,8 @@ class Answers:
         self.answered_ms = -1   # the newest answered
         self._last_frame: bytes | None = None
         self._repeat = False
+        self.defer = False
+        """The state being answered woke a wait: its answer leaves at the end of the loop's turn."""
 
     def telemetry(self, boot_ms: int) -> None:
         """A high-rate message of time ``boot_ms`` (several may share one instant)."""
@@ -110,10 +115,10 @@ class Answers:
             self._repeat = True  # sent again: the answer may have been lost
 
     def command(self, boot_ms: int, frame: bytes) -> None:
-        """Send an actuator command answering ``boot_ms`` (after this turn of the loop, in lockstep)."""
+        """Send an actuator command answering ``boot_ms`` (see ``defer``)."""
         self.answered_ms = boot_ms
         self._last_frame = frame
-        if self.lockstep:
+        if self.lockstep and self.defer:
             asyncio.get_running_loop().call_soon(self._write, frame)
         else:
             self._write(frame)

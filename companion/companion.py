@@ -842,7 +842,7 @@ class Companion:
         if prev is not None and s.t_rx - prev.t_rx > 0.05 and self.phase == Phase.FLYING:
             self.log.info(f"telemetry gap {1e3 * (s.t_rx - prev.t_rx):.0f} ms (fc time {s.boot_ms - prev.boot_ms} ms)")
         self._last_sample = s
-        self.clock.advance(s.boot_ms)
+        self.answers.defer = self.clock.advance(s.boot_ms)
         self._queue.append(s)
 
     def _process_samples(self) -> None:
