@@ -1,4 +1,5 @@
-# triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks.
+# triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks,
+# `make docs` regenerates the CLI reference docs/cli.md.
 # Every target creates (once) and uses the project's own virtual environment in .venv.
 
 PYTHON ?= python3
@@ -7,7 +8,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
-.PHONY: demo test bench venv clean lint netns-tools
+.PHONY: demo test bench docs venv clean lint netns-tools
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
@@ -22,8 +23,11 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/triswarm demo --plan examples/paper-hexagon.toml
 
+# Two workers for everything on simulated time or with no clock at all; then, alone on the machine,
+# the few tests that judge something on the wall clock (marked realtime).
 test: $(STAMP) netns-tools lint
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 -m "not realtime"
+	$(PY) -m pytest -m realtime
 
 lint: $(STAMP)
 	$(PY) -m ruff check --quiet .
@@ -41,9 +45,16 @@ netns-tools:
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
+	$(ONE_CORE) $(PY) tests/bench/bench_formations.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
-	$(ONE_CORE) $(PY) tests/bench/bench_stack.py
+	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 6 --seconds 50
+	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 0
+	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 1 --sizes 2,4,6,8
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
+
+# docs/cli.md: the --help of every command, from the CLI itself
+docs: $(STAMP)
+	$(PY) tools/gen_cli_docs.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

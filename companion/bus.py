@@ -10,7 +10,9 @@ Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback
 thread, tags the payload with the agent whose key it came on and appends it to an inbox (a deque,
 the newest 256 kept); while the loop waits for its neighbours it also rings a doorbell (a local
 datagram socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment
-it arrives and the others cost no wake-up at all. Decoding, validation and counting all happen in
+it arrives and the others cost no wake-up at all. An estimate of an agent of the same process is
+delivered in the publisher's call, on the loop's own thread: that one is taken at the loop's next
+turn, with no doorbell. Decoding, validation and counting all happen in
 the loop. Liveliness and status change rarely: ring channels the loop drains at every tick.
 """
 
@@ -21,6 +23,7 @@ import json
 import math
 import os
 import socket
+import threading
 import time
 from collections.abc import Callable
 from collections import Counter, deque
@@ -125,6 +128,8 @@ class Bus:
             sock.setblocking(False)
         self.waiting = False
         """Set by the loop while it waits for estimates: the callbacks then ring the doorbell."""
+        self._loop_thread = threading.get_ident()
+        self._called = False
         self._own_session = not isinstance(config, zenoh.Session)
         self.session = zenoh.open(config) if self._own_session else config
         s = self.session
@@ -170,12 +175,21 @@ class Bus:
         def handover(sample) -> None:
             append(tag + sample.payload.to_bytes())
             if self.waiting:
+                if threading.get_ident() == self._loop_thread:  # (an agent of this process published)
+                    if not self._called:
+                        self._called = True
+                        self.loop.call_soon(self._take_now)
+                    return
                 try:
                     ring(b"!")
                 except OSError:  # the doorbell's buffer is full: the loop is awake anyway
                     pass
 
         return handover
+
+    def _take_now(self) -> None:
+        self._called = False
+        self.take_estimates()
 
     def _answer_door(self) -> None:
         try:

@@ -9,8 +9,10 @@ seconds may pass faster or slower than the wall's.
 In lockstep (the flight controller's SIM_LOCKSTEP parameter is 1) the simulator steps on only
 when the companion has answered the newest state it was sent: with its actuator command, whose
 ``time_usec`` is that state's boot time, or with a command of NaNs when it commands nothing.
-Answers leave at the end of the loop's turn, after whatever the same instant woke (an arm command
-sent at a start time reaches the flight controller before the answer, so at the same step).
+An answer leaves as soon as it is ready, so that the simulator takes it in while the companion is
+still at work on its other agents; when the state woke a wait (a start time: an arm command to send)
+it leaves at the end of the loop's turn instead, after whatever the instant woke, which then reaches
+the flight controller before the answer, at the same step.
 """
 
 from __future__ import annotations
@@ -27,41 +29,65 @@ REBOOT_JUMP_MS = 1000
 
 
 class FcClock:
+    """Kept in whole microseconds: Unix times near 1.8e9 s hold no better than a quarter of a
+    microsecond in a float, so plan times computed from them would differ in their last bits from
+    one run to the next (and two lockstep runs would not be the same)."""
+
     def __init__(self) -> None:
-        self.offset_s: float | None = None
-        """Unix time minus the flight controller's boot time [s] (from SYSTEM_TIME)."""
+        self.offset_us: int | None = None
+        """Unix time minus the flight controller's boot time [us] (from SYSTEM_TIME)."""
         self.boot_ms: int | None = None
         """The newest sample's flight-controller time [ms since its boot]."""
         self._waiters: list = []
         self._order = itertools.count()
 
+    @property
+    def known(self) -> bool:
+        return self.offset_us is not None
+
+    def set_offset(self, time_unix_usec: int, time_boot_ms: int) -> None:
+        """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]."""
+        self.offset_us = int(time_unix_usec) - int(time_boot_ms) * 1000
+
     def unix(self, boot_ms: int) -> float:
         """A flight-controller time as Unix time (the wall clock until SYSTEM_TIME was heard)."""
-        return time.time() if self.offset_s is None else self.offset_s + boot_ms / 1000.0
+        return time.time() if self.offset_us is None else (self.offset_us + boot_ms * 1000) / 1e6
 
     def now(self) -> float:
         """The flight controller's time now, as Unix time: that of its newest sample."""
-        if self.offset_s is None or self.boot_ms is None:
+        if self.offset_us is None or self.boot_ms is None:
             return time.time()
-        return self.offset_s + self.boot_ms / 1000.0
+        return (self.offset_us + self.boot_ms * 1000) / 1e6
 
-    def advance(self, boot_ms: int) -> None:
-        """A sample of time ``boot_ms`` came: wake whoever waits for that time."""
+    def plan_time(self, boot_ms: int, start_unix_s: float) -> float:
+        """A flight-controller time as plan time: seconds since ``start_unix_s``, exactly."""
+        if self.offset_us is None:
+            return time.time() - start_unix_s
+        return (self.offset_us + boot_ms * 1000 - round(start_unix_s * 1e6)) / 1e6
+
+    def _now_us(self) -> int | None:
+        return None if self.offset_us is None or self.boot_ms is None else self.offset_us + self.boot_ms * 1000
+
+    def advance(self, boot_ms: int) -> bool:
+        """A sample of time ``boot_ms`` came: wake whoever waits for that time. True if it woke any."""
         self.boot_ms = boot_ms
-        if self.offset_s is None:
-            return
-        now = self.now()
-        while self._waiters and self._waiters[0][0] <= now:
+        now_us = self._now_us()
+        woke = False
+        while now_us is not None and self._waiters and self._waiters[0][0] <= now_us:
             fut = heapq.heappop(self._waiters)[2]
             if not fut.done():
                 fut.set_result(None)
+                woke = True
+        return woke
 
     async def until(self, t_unix: float) -> None:
         """Wait until the flight controller's clock reaches ``t_unix``."""
-        if self.offset_s is not None and self.boot_ms is not None and self.now() >= t_unix:
+        t_us = round(t_unix * 1e6)
+        now_us = self._now_us()
+        if now_us is not None and now_us >= t_us:
             return
         fut = asyncio.get_running_loop().create_future()
-        heapq.heappush(self._waiters, (t_unix, next(self._order), fut))
+        heapq.heappush(self._waiters, (t_us, next(self._order), fut))
         await fut
 
 
@@ -75,6 +101,8 @@ class Answers:
         self.answered_ms = -1   # the newest answered
         self._last_frame: bytes | None = None
         self._repeat = False
+        self.defer = False
+        """The state being answered woke a wait: its answer leaves at the end of the loop's turn."""
 
     def telemetry(self, boot_ms: int) -> None:
         """A high-rate message of time ``boot_ms`` (several may share one instant)."""
@@ -87,10 +115,10 @@ class Answers:
             self._repeat = True  # sent again: the answer may have been lost
 
     def command(self, boot_ms: int, frame: bytes) -> None:
-        """Send an actuator command answering ``boot_ms`` (after this turn of the loop, in lockstep)."""
+        """Send an actuator command answering ``boot_ms`` (see ``defer``)."""
         self.answered_ms = boot_ms
         self._last_frame = frame
-        if self.lockstep:
+        if self.lockstep and self.defer:
             asyncio.get_running_loop().call_soon(self._write, frame)
         else:
             self._write(frame)

@@ -311,20 +311,34 @@ class Companion:
             self._items = (spec, encode_plan(spec))
         return self._items[1]
 
-    def _receive_plan(self, items: list[PlanItem]) -> tuple[int, str]:
-        """A whole mission came: check it as `plan check` does; stage it if it flies."""
+    def _receive_plan(self, items: list[PlanItem]) -> tuple[int, str] | asyncio.Future:
+        """A whole mission came: check it as `plan check` does (but the flight); stage it if it
+        passes. The check runs off the loop (at 200 drones it takes longer than the flight
+        controller's failsafe would wait for the next command): the answer is a future."""
         try:
             spec, pid = decode_plan(items)
             plan = plan_from_dict(spec, "uploaded plan")
             if not 1 <= self.agent <= plan.n_agents:
                 raise PlanError(f"uploaded plan: agent {self.agent} is not in it ({plan.n_agents} drones)")
-            plan.check()
         except PlanTransferError as exc:
             return exc.ack_code, f"plan refused: {exc}"
         except (PlanError, ParameterError, ValueError) as exc:
             return mavlink.MAV_MISSION_INVALID, f"plan refused: {exc}"
-        self.staged = (plan, pid)
-        return mavlink.MAV_MISSION_ACCEPTED, f"plan {plan.name} {pid:08x} received; waiting for its start"
+        answer = self.loop.create_future()
+
+        def checked(done: asyncio.Future) -> None:
+            exc = done.exception()
+            if isinstance(exc, (PlanError, ParameterError, ValueError)):
+                answer.set_result((mavlink.MAV_MISSION_INVALID, f"plan refused: {exc}"))
+            elif exc is not None:  # a bug, shown as one
+                self.log.error("plan check failed", exc_info=exc)
+                answer.set_result((mavlink.MAV_MISSION_ERROR, f"plan check failed: {exc.__class__.__name__}: {exc}"))
+            else:
+                self.staged = (plan, pid)
+                answer.set_result((mavlink.MAV_MISSION_ACCEPTED, f"plan {plan.name} {pid:08x} received; waiting for its start"))
+
+        self.loop.run_in_executor(None, plan.check).add_done_callback(checked)
+        return answer
 
     def _clear_plans(self) -> tuple[int, str]:
         if self.phase in (Phase.FLYING, Phase.HOLDING):
@@ -527,6 +541,8 @@ class Companion:
         self.bus.open(self._zenoh(plan.n_agents), loop)
         self._design = plan.design
         self._in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in plan.schedule.topologies}
+        self._in_weights = {t.name: [(j, float(t.adjacency[i, j - 1])) for j in self._in_neighbours[t.name]]
+                            for t in plan.schedule.topologies}
         self._paths: dict[tuple, bool] = {}
         self._presence_base = None
         self.ctrl = FormationController(self._design, 1, self.opts.rate_hz,
@@ -598,7 +614,7 @@ class Companion:
                                     local_ned_to_paper(msg.x, msg.y, msg.z), local_ned_to_paper(msg.vx, msg.vy, msg.vz)))
         elif t == "SYSTEM_TIME":
             if msg.time_unix_usec > 0:
-                self.clock.offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+                self.clock.set_offset(msg.time_unix_usec, msg.time_boot_ms)
         elif t == "EXTENDED_SYS_STATE":
             fc.landed = msg.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
         elif t == "COMMAND_ACK":
@@ -651,7 +667,7 @@ class Companion:
                            (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
             await self.fc_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
         await self.fc_command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)
-        while self.clock.offset_s is None:
+        while not self.clock.known:
             await asyncio.sleep(0.05)
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,
         # which would otherwise stall the loop for tens of milliseconds at a time.
@@ -699,7 +715,7 @@ class Companion:
     async def _start_when_due(self) -> None:
         m = self.mission
         try:
-            while self.clock.offset_s is None or self.fc.max_rpm is None:  # setup_fc is still running
+            while not self.clock.known or self.fc.max_rpm is None:  # setup_fc is still running
                 await asyncio.sleep(0.05)
             if self.opts.autostart:  # (a start command has its answer already)
                 self.statustext(f"companion {self.agent}: plan {self.plan.name} starts at {m.start_unix_s:.1f}")
@@ -719,7 +735,7 @@ class Companion:
                 if result != mavlink.MAV_RESULT_ACCEPTED:
                     raise RuntimeError(f"the flight controller refused external control ({result})")
                 self.fc.mode = CustomMode.EXTERNAL
-            self._begin_entry(max(m.start_unix_s, self.fc_unix(self._last_sample.boot_ms)))
+            self._begin_entry(max(0.0, self._plan_time(self._last_sample)))
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
@@ -748,15 +764,16 @@ class Companion:
         R = model.rotation_body_to_earth(s.eta)
         return np.concatenate([R.T @ s.velocity_e, s.rates, s.eta, s.position])
 
-    def _begin_entry(self, t0_unix: float) -> None:
-        """Take off from where the drone rests and enter the formation (the plan's entry)."""
+    def _begin_entry(self, t0_s: float) -> None:
+        """Take off from where the drone rests and enter the formation (the plan's entry) from plan
+        time ``t0_s``."""
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         m = self.mission
         m.phase = "flying"
         self.store.save(m)
         start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self._flying = self._tracking = self.plan.entry_formation(start, t0_unix - m.start_unix_s, self.formation)
+        self._flying = self._tracking = self.plan.entry_formation(start, t0_s, self.formation)
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -766,8 +783,7 @@ class Companion:
         if not self.fc.armed or self.fc.landed:
             if not self.fc.armed:
                 await self._arm()
-            t0 = self.fc_unix(self._last_sample.boot_ms) + 1.0
-            self._begin_entry(t0)
+            self._begin_entry(self._plan_time(self._last_sample) + 1.0)
             return
         x = self._current_state()
         self.ctrl.reset(x[None, :])
@@ -819,7 +835,7 @@ class Companion:
             self.bus.publish_status(PHASE_STATUS[self.phase], self._phase_reason, self._phase_since)
 
     def _plan_time(self, s: Sample) -> float:
-        return self.fc_unix(s.boot_ms) - self.mission.start_unix_s
+        return self.clock.plan_time(s.boot_ms, self.mission.start_unix_s)
 
     # -- the tick -----------------------------------------------------------------------------
 
@@ -828,7 +844,7 @@ class Companion:
         if prev is not None and s.t_rx - prev.t_rx > 0.05 and self.phase == Phase.FLYING:
             self.log.info(f"telemetry gap {1e3 * (s.t_rx - prev.t_rx):.0f} ms (fc time {s.boot_ms - prev.boot_ms} ms)")
         self._last_sample = s
-        self.clock.advance(s.boot_ms)
+        self.answers.defer = self.clock.advance(s.boot_ms)
         self._queue.append(s)
 
     def _process_samples(self) -> None:
@@ -958,15 +974,16 @@ class Companion:
             self._start_hold(w.t_plan, w.xhat[0], f"no path to the leader in {topo.name}")
             self._hold_step(w.sample, w.xhat, w.t_plan)
             return
-        used = [j for j in self._in_neighbours[topo.name] if present[j - 1] and bus.neighbours[j].heard]
-        weights = topo.adjacency[i, [j - 1 for j in used]]
         nsum = np.zeros(12)
+        weight = 0.0
         now = time.time()
-        for w_ij, j in zip(weights, used):
+        for j, w_ij in self._in_weights[topo.name]:
             nb = bus.neighbours[j]
-            nsum += w_ij * nb.xi
-            self.health.neighbour_age[j].add(now - nb.stamp_s)
-        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weights.sum()]),
+            if present[j - 1] and nb.heard:
+                nsum += w_ij * nb.xi
+                weight += w_ij
+                self.health.neighbour_age[j].add(now - nb.stamp_s)
+        v = protocol_input(self._design, w.xi, nsum[None, :], np.array([weight]),
                            topo.pinning[i:i + 1], w.ref.x0, w.ref.gamma)
         self._actuate(v, w.sample)
         if self.health.ticks % 10 == 0:  # 20 Hz is plenty for a 1 Hz report

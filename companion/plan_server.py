@@ -14,6 +14,8 @@ Clear: MISSION_CLEAR_ALL -> MISSION_ACK with what ``on_clear`` answers.
 
 from __future__ import annotations
 
+import asyncio
+
 import logging
 from collections import Counter
 from dataclasses import dataclass
@@ -35,6 +37,8 @@ class _Upload:
     items: list
     deadline_s: float = 0.0
     tries: int = 0
+    checking: bool = False
+    """Every item is in and the plan is being checked (off the loop): its answer waits for that."""
 
     @property
     def next_seq(self) -> int:
@@ -42,7 +46,11 @@ class _Upload:
 
 
 class PlanServer:
-    def __init__(self, on_plan: Callable[[list[PlanItem]], tuple[int, str]], on_clear: Callable[[], tuple[int, str]],
+    """``on_plan(items)`` answers (MISSION_ACK code, reason) for a whole upload, or a future of it
+    (a check that takes longer than the loop can wait)."""
+
+    def __init__(self, on_plan: Callable[[list[PlanItem]], tuple[int, str] | asyncio.Future],
+                 on_clear: Callable[[], tuple[int, str]],
                  held_items: Callable[[], list[PlanItem]], say: Callable[[str, int], None], timeout_s: float = 1.0, retries: int = 5) -> None:
         self.on_plan, self.on_clear, self.held_items, self.say = on_plan, on_clear, held_items, say
         self.timeout_s, self.retries = timeout_s, retries
@@ -69,7 +77,7 @@ class PlanServer:
     def poll(self, now_s: float) -> None:
         """Ask again for an item that is late; give up after ``retries``."""
         up = self.upload
-        if up is None or now_s < up.deadline_s:
+        if up is None or up.checking or now_s < up.deadline_s:
             return
         if up.tries >= self.retries:
             self.upload = None
@@ -109,6 +117,9 @@ class PlanServer:
         if up is None or (msg.get_srcSystem(), msg.get_srcComponent()) != up.partner:
             self.counters["items_unexpected"] += 1
             return
+        if up.checking:  # (the station sent its last item again: the answer comes with the check's end)
+            self.counters["items_while_checking"] += 1
+            return
         if msg.seq != up.next_seq:  # a duplicate or one out of order: ask for the one we need
             self.counters["items_out_of_order"] += 1
             self._request_next(up, now_s)
@@ -125,8 +136,18 @@ class PlanServer:
         if up.next_seq < up.total:
             self._request_next(up, now_s)
             return
-        code, reason = self.on_plan(up.items)
-        self._end_upload(up, code, reason)
+        result = self.on_plan(up.items)
+        if isinstance(result, tuple):
+            self._end_upload(up, *result)
+            return
+        up.checking = True
+        result.add_done_callback(lambda done: self._checked(up, done))
+
+    def _checked(self, up: _Upload, done: asyncio.Future) -> None:
+        if self.upload is not up:  # another upload began meanwhile: this one's answer is moot
+            self.counters["checks_superseded"] += 1
+            return
+        self._end_upload(up, *done.result())
 
     def _end_upload(self, up: _Upload, code: int, reason: str) -> None:
         self.upload = None

@@ -56,11 +56,13 @@ def _default_out(name: str) -> Path:
 @app.command()
 def sim(
     scenario: Annotated[str, typer.Option(help="Built-in scenario name or path to a plan TOML file.")] = "paper-hexagon",
-    duration: Annotated[float, typer.Option(help="Simulated time [s].")] = 50.0,
+    duration: Annotated[Optional[float], typer.Option(help="Simulated time [s] (default: the plan's duration_s, 60 s "
+                                                           "unless the plan says).")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<scenario>-<time>).")] = None,
-    drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only).")] = None,
+    drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only; the circle grows "
+                                                       "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
-    max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default 12000).")] = None,
+    max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
     noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
     mismatch: Annotated[float, typer.Option(help="Plant mass/inertia +PCT %, k_f -PCT/2 % against the controller's model.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed for start positions and noise.")] = 0,
@@ -68,7 +70,10 @@ def sim(
     log_hz: Annotated[float, typer.Option(help="Telemetry rows per second per drone.")] = 50.0,
     position_bound_m: Annotated[float, typer.Option(help="Position bound for the verdict [m].")] = 0.10,
     attitude_bound_rad: Annotated[float, typer.Option(help="Attitude bound for the verdict [rad].")] = 0.02,
-    strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the bounds over [25 s, end].")] = False,
+    strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the bounds over the settled window "
+                                              "(from the entry's end + check.settle_s, 25 s for the case study).")] = False,
+    force: Annotated[bool, typer.Option(help="Fly even a plan that plan check refuses for its switching certificate or "
+                                             "its separation (to see what would happen).")] = False,
     figures: Annotated[bool, typer.Option(help="Write the PNG figures.")] = True,
 ) -> None:
     """Fly a plan in-process: N simulated tri-rotors and their controllers in one process."""
@@ -90,15 +95,21 @@ def sim(
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(scenario, drones)
+        duration = plan.duration_s if duration is None else duration
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed)
-        design = plan.check(horizon_s=duration)
+        design = plan.check_formation(horizon_s=duration)
+        problems = plan.safety_problems(horizon_s=duration)
+        if problems and not force:
+            raise UserError(f"{plan.source}: {problems[0]} (--force flies it anyway)")
         out_dir = out or _default_out(plan.name)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise UserError(f"cannot create output folder {out_dir}: {exc.strerror}") from None
 
+    for problem in problems:
+        err_console.print(f"triswarm: warning: {plan.source}: {problem}; flying it anyway (--force)", soft_wrap=True)
     console.print(f"[bold]{plan.name}[/]: {plan.n_agents} drones, {duration:g} s, c = {design.c:.3g}, "
                   f"lambda_R = {design.lambda_R:.3g}, topologies {', '.join(design.topology_names)}")
     with Progress(TextColumn("simulating"), BarColumn(), TextColumn("{task.fields[t]:6.1f} / {task.total:g} s"),
@@ -107,7 +118,7 @@ def sim(
         result = simulate(plan, config, progress=lambda t: bar.update(task, completed=t, t=t))
 
     pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
-    window = min(25.0, 0.5 * duration)
+    window = plan.settled_from_s if plan.settled_from_s < duration else 0.5 * duration
     perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window, position_bound_m=position_bound_m,
                           attitude_bound_rad=attitude_bound_rad)
     per_drone = []
@@ -191,6 +202,9 @@ def sitl_up(
     spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
     stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
     duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    param: Annotated[Optional[list[str]], typer.Option("--param", metavar="NAME=VALUE",
+                                                       help="A parameter every vehicle starts with, e.g. "
+                                                            "NOISE_POS_M=0.02 (repeat).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Step the clock when every vehicle's companion has answered, not with "
                                                 "the wall clock: as fast as the machine allows, the same however busy "
                                                 "it is. The clock starts when every companion answers.")] = False,
@@ -218,9 +232,16 @@ def sitl_up(
             raise UserError(f"--first-id {first_id} with {n} vehicles leaves system ids outside 1..255")
         if not 0 <= base_port <= 65535 - 2 * n:
             raise UserError(f"--base-port {base_port} leaves no room for {n} vehicles (two ports each)")
+        params = []
+        for item in param or []:
+            name, _, value = item.partition("=")
+            try:
+                params.append((name.strip().upper(), float(value)))
+            except ValueError:
+                raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
-                           lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
+                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)

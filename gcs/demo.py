@@ -1,8 +1,10 @@
 """`triswarm demo`: the paper's case study, whole stack, on this machine, driven as an operator would.
 
-`sitl up -n 6` and six companions as processes on loopback; the ground station uploads the plan
-over MAVLink, arms, takes off, starts the plan at one common time, lets the formation fly, lands,
-disarms and stops every process. The run folder gets gcs.tlog (everything the ground station
+`sitl up -n 6` and the six agents' companions (one process flying all six, as simulations of a swarm
+on one machine do) on loopback; the ground station uploads the plan over MAVLink, arms, takes off,
+starts the plan at one common time, lets the formation fly, lands, disarms and stops every process.
+In real time by default; with ``--lockstep`` on simulated time, as fast as the machine allows (the
+times below are then the flight controllers' clock, which the ground station follows). The run folder gets gcs.tlog (everything the ground station
 received), plan.toml, run.json, and from the log (`triswarm plot`) telemetry.csv, summary.json and
 the figures. Exit 0 only if the formation met the bounds over [25 s, end].
 """
@@ -52,8 +54,11 @@ def demo(
     plan_name: Annotated[str, typer.Option("--plan", help="Built-in scenario or plan file.")] = "paper-hexagon",
     duration_s: Annotated[float, typer.Option("--duration-s", help="Plan time to fly before landing [s].")] = 50.0,
     out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
+    lockstep: Annotated[bool, typer.Option(help="Fly on simulated time (sitl up --lockstep): as fast as this machine "
+                                                "allows, the same however busy it is.")] = False,
+    agents_per_process: Annotated[int, typer.Option(help="Agents per companion process (0: all in one).")] = 0,
 ) -> None:
-    """The paper's case study, whole stack, on this machine (sitl, six companions, the ground station)."""
+    """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
@@ -65,7 +70,8 @@ def demo(
     (run / "plan.toml").write_text(plan_text(plan_name), encoding="utf-8")
     n = plan.n_agents
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
-    with Stack(None, run / "stack", n) as stack, GroundLink(stack.endpoints(), tlog=run / "gcs.tlog") as link:
+    with Stack(None, run / "stack", n, lockstep=lockstep, agents_per_process=agents_per_process) as stack, \
+            GroundLink(stack.endpoints(), tlog=run / "gcs.tlog") as link:
         ids = list(range(1, n + 1))
         console.print(f"sitl and {n} companions started (logs in {run / 'stack' / 'logs'})")
         _wait("every companion's heartbeat", lambda: all(link.companion(i).heartbeat for i in ids)
@@ -74,20 +80,21 @@ def demo(
         _step("arm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0]))
         _step("takeoff", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0] + [float("nan")] * 4))
         _wait("hover after takeoff", lambda: all(link.autopilot(i).heartbeat.custom_mode == CustomMode.HOLD for i in ids), 30.0)
-        start = time.time() + 3.0
+        _wait("the flight controllers' clock", lambda: link.fc_now() == link.fc_now(), 30.0)
+        start = link.fc_now() + 3.0
         _step("plan start", start_all(link, ids, pid, start))
         (run / "run.json").write_text(json.dumps({"start_unix_s": start, "plan_id": pid, "drones": n,
                                                   "endpoints": stack.endpoints()}, indent=2) + "\n", encoding="utf-8")
         with Progress(TextColumn("formation flight"), BarColumn(), TextColumn("t = {task.completed:5.1f} / {task.total:g} s"),
                       TextColumn("{task.fields[errors]}"), console=console) as bar:
             task = bar.add_task("", total=duration_s, errors="")
-            while (t := time.time() - start) < duration_s:
+            while (t := link.fc_now() - start) < duration_s:
                 errs = [link.companion(i).named.get("FORM_ERRM", (float("nan"),))[0] for i in ids]
                 bar.update(task, completed=max(0.0, t), errors="error " + " ".join(f"{e:.2f}" for e in errs) + " m")
                 time.sleep(0.25)
             bar.update(task, completed=duration_s)
         info = json.loads((run / "run.json").read_text())
-        info["formation_end_s"] = time.time() - start
+        info["formation_end_s"] = link.fc_now() - start
         (run / "run.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
         _step("land", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_LAND, []))
         _wait("landing and disarm", lambda: all(not link.autopilot(i).heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED

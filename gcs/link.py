@@ -118,6 +118,8 @@ class GroundLink:
         self._chunks: dict[tuple, list] = {}
         self._stop = threading.Event()
         self._heartbeat_s = 1.0 / heartbeat_hz
+        self._fc_offset_us: dict[int, int] = {}
+        self._fc_now: dict[int, float] = {}
         try:
             for i, url in self.endpoints.items():
                 self.conns[i] = mavutil.mavlink_connection(url, source_system=GCS_SYSID, source_component=GCS_COMPID,
@@ -249,6 +251,8 @@ class GroundLink:
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             seen = self.seen[src]
             t = msg.get_type()
+            if src[1] == mavlink.MAV_COMP_ID_AUTOPILOT1 and t in ("SYSTEM_TIME", "ATTITUDE"):
+                self._fc_clock(src[0], msg)
             if t == "HEARTBEAT":
                 seen.heartbeat, seen.heartbeat_at = msg, now
             elif t == "NAMED_VALUE_FLOAT":
@@ -276,6 +280,21 @@ class GroundLink:
         del self._chunks[key]
         msg.text = "".join(parts)
         return msg
+
+    def _fc_clock(self, drone: int, msg) -> None:
+        if msg.get_type() == "SYSTEM_TIME":
+            if msg.time_unix_usec > 0:
+                self._fc_offset_us[drone] = msg.time_unix_usec - msg.time_boot_ms * 1000
+                self._fc_now[drone] = msg.time_unix_usec / 1e6
+        elif drone in self._fc_offset_us:
+            self._fc_now[drone] = (self._fc_offset_us[drone] + msg.time_boot_ms * 1000) / 1e6
+
+    def fc_now(self) -> float:
+        """The flight controllers' clock as last heard (their SYSTEM_TIME and telemetry), as Unix
+        time: the slowest one's; NaN before every drone's was heard. On a simulator in lockstep this
+        is simulated time, not the wall's."""
+        times = [self._fc_now.get(i) for i in self.endpoints]
+        return float("nan") if None in times else min(times)
 
     def companion(self, drone: int) -> Seen:
         return self.seen[(drone, COMP_ONBOARD)]

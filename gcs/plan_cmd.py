@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
-from typing import Annotated
+from typing import Annotated, Optional
 
 import numpy as np
 import typer
@@ -14,8 +15,10 @@ from rich.table import Table
 
 from triswarm.protocol.airframe import RPM_TO_RAD_S
 from triswarm.protocol.design import Design
-from triswarm.protocol.plan import ActuatorDemand, Plan
+from triswarm.protocol.plan import ActuatorDemand, Plan, PlanError
+from triswarm.protocol.separation import Approach
 
+from . import plan_flight
 from .errors import UserError, console, user_errors
 from .report import design_summary
 from .scenarios import load_plan
@@ -29,24 +32,56 @@ plan_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_m
 @plan_app.command("check")
 def check(
     file: Annotated[str, typer.Argument(help="Plan TOML file (or a built-in scenario name).")],
-    horizon_s: Annotated[float, typer.Option("--horizon-s", help="Check the feasibility condition (76) over [0, S] s.")] = 60.0,
+    drones: Annotated[Optional[int], typer.Option(help="Resize the plan to N drones first, as `sim --drones` does.")] = None,
+    horizon_s: Annotated[Optional[float], typer.Option("--horizon-s", help="Check and fly over [0, S] s (default: the plan's "
+                                                                           "duration_s, 60 s unless it says).")] = None,
+    no_simulate: Annotated[bool, typer.Option("--no-simulate", help="Skip the flight in simulation (then the plan is "
+                                                                    "checked, not flown).")] = False,
+    min_separation_m: Annotated[Optional[float], typer.Option("--min-separation-m", help="Minimum distance between drones "
+                                                              "along the reference (default: check.min_separation_m, "
+                                                              "8 arm lengths).")] = None,
+    position_bound_m: Annotated[Optional[float], typer.Option("--position-bound-m", help="Flight verdict: position bound "
+                                                              "(default: check.position_bound_m, 0.10).")] = None,
+    attitude_bound_rad: Annotated[Optional[float], typer.Option("--attitude-bound-rad", help="Flight verdict: attitude "
+                                                                "bound (default: check.attitude_bound_rad, 0.02).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the design summary as JSON.")] = False,
 ) -> None:
-    """Check a plan as Algorithm 1 does and print its design.
+    """Check a plan as Algorithm 1 does, certify its switching, and fly it in simulation.
 
-    The checks: (76) per drone over [0, S] s, Assumption 1 per topology, (91) and the Hurwitz
-    conditions (77), and the rotor speeds and servo angles that flying the formation exactly needs,
-    against the airframe's limits. A bad plan ends with one sentence and exit status 2."""
+    The checks: (76) per drone, Assumption 1 per topology, (91) and the Hurwitz conditions (77),
+    the rotor speeds and servo angles that flying the formation exactly needs, the certificate of
+    the switched formation-error system, and the minimum separation along the reference. Then the
+    plan is flown in the in-process simulation (nominal plant, from the ground) and every drone must
+    stay within the bounds over the settled window. "plan OK" means all of that passed. A refused
+    plan ends with one sentence and exit status 2."""
     with user_errors():
-        if not (math.isfinite(horizon_s) and horizon_s > 0):
-            raise UserError(f"--horizon-s must be a positive number, got {horizon_s}")
-        plan = load_plan(file)
-        design = plan.check(horizon_s=horizon_s, step_s=CHECK_STEP_S)
-        demand = plan.actuator_demand(np.arange(0.0, horizon_s + 1e-9, CHECK_STEP_S))
+        for name, value in (("horizon-s", horizon_s), ("min-separation-m", min_separation_m),
+                            ("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise UserError(f"--{name} must be a positive number, got {value}")
+        if drones is not None and drones < 1:
+            raise UserError(f"--drones must be at least 1, got {drones}")
+        plan = load_plan(file, drones)
+        changes = {k: v for k, v in (("min_separation_m", min_separation_m), ("position_bound_m", position_bound_m),
+                                     ("attitude_bound_rad", attitude_bound_rad)) if v is not None}
+        if changes:
+            plan = dataclasses.replace(plan, check_settings=dataclasses.replace(plan.check_settings, **changes))
+        horizon = plan.duration_s if horizon_s is None else horizon_s
+        design = plan.check(horizon_s=horizon, step_s=CHECK_STEP_S)
+        demand = plan.actuator_demand(np.arange(0.0, horizon + 1e-9, CHECK_STEP_S))
+        approach = plan.closest_approach(horizon, CHECK_STEP_S)
+        flight = None
+        if not no_simulate:
+            if horizon <= plan.settled_from_s:
+                raise UserError(f"--horizon-s {horizon:g} ends before the settled window the flight is judged over "
+                                f"begins ({plan.settled_from_s:g} s)")
+            flight = plan_flight.fly(plan, horizon)
+            if flight.problem is not None:
+                raise PlanError(f"{plan.source}: {flight.problem}")
     if as_json:
-        typer.echo(json.dumps(_summary(plan, design, demand, horizon_s), indent=2))
+        typer.echo(json.dumps(_summary(plan, design, demand, horizon, approach, flight), indent=2))
     else:
-        _print_design(plan, design, demand, horizon_s)
+        _print_design(plan, design, demand, horizon, approach, flight)
 
 
 def _actuators(plan: Plan, demand: ActuatorDemand) -> list[dict]:
@@ -60,7 +95,8 @@ def _actuators(plan: Plan, demand: ActuatorDemand) -> list[dict]:
             for i in range(plan.n_agents)]
 
 
-def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float) -> dict:
+def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float, approach: Approach | None,
+             flight: plan_flight.Flight | None) -> dict:
     return {
         "source": plan.source,
         "name": plan.name,
@@ -69,7 +105,14 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
         "switch_period_s": plan.schedule.period_s,
         "feasible_over_s": [0.0, horizon_s],
         "design": design_summary(design),
+        "certificate": plan.certificate.summary(),
+        "separation": {"min_separation_m": plan.check_settings.min_separation_m,
+                       "closest_m": None if approach is None else approach.distance_m,
+                       "closest_drones": None if approach is None else [i + 1 for i in approach.pair],
+                       "closest_t_s": None if approach is None else approach.t_s},
         "actuators": _actuators(plan, demand),
+        "flight": flight.summary() if flight is not None else {"flown": False},
+        "ok": flight is not None,
     }
 
 
@@ -79,7 +122,8 @@ def _complex(z: complex) -> str:
     return f"{z.real:.4g}" if abs(z.imag) < 1e-4 * max(1.0, abs(z)) else f"{z.real:.4g}{z.imag:+.4g}j"
 
 
-def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float) -> None:
+def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float, approach: Approach | None,
+                  flight: plan_flight.Flight | None) -> None:
     facts = Table.grid(padding=(0, 2))
     facts.add_column(style="bold")
     facts.add_column()
@@ -98,13 +142,14 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
     topologies.add_column("min Re", justify="right")
     topologies.add_column("eigenvalues")
     for name, eigs in zip(design.topology_names, design.eigenvalues):
-        topologies.add_row(name, f"{np.min(eigs.real):.4g}", ", ".join(_complex(z) for z in eigs))
+        topologies.add_row(name, f"{np.min(eigs.real):.4g}", _eigenvalue_list(eigs))
     console.print(topologies)
+    _print_certificate(plan)
 
     feasibility = Table(title="(76) per drone")
     feasibility.add_column("drone", justify="right")
     feasibility.add_column("formation offsets")
-    for i in range(plan.n_agents):
+    for i in _shown(plan.n_agents):
         feasibility.add_row(str(i + 1), f"feasible over [0, {horizon_s:g}] s")
     console.print(feasibility)
 
@@ -114,10 +159,59 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
     actuators.add_column("motor limit", justify="right")
     actuators.add_column("largest tilt [deg]", justify="right")
     actuators.add_column("servo range", justify="right")
-    for row in _actuators(plan, demand):
+    rows = _actuators(plan, demand)
+    for i in _shown(plan.n_agents):
+        row = rows[i]
         lo, hi = row["rotor_speed_rpm"]
         actuators.add_row(str(row["drone"]), f"{lo:.0f} - {hi:.0f}", f"{hi / row['motor_limit_rpm']:.0%} of "
                           f"{row['motor_limit_rpm']:.0f}", f"{row['tilt_max_deg']:.1f}",
                           f"{row['tilt_max_deg'] / row['servo_range_deg']:.0%} of +-{row['servo_range_deg']:.0f}")
     console.print(actuators)
-    console.print(f"[green]{escape(plan.source)}: plan OK[/]")
+    if approach is not None:
+        i, j = approach.pair
+        console.print(f"separation: drones {i + 1} and {j + 1} come closest, {approach.distance_m:.3g} m apart at "
+                      f"t = {approach.t_s:.4g} s (minimum {plan.check_settings.min_separation_m:g} m)", soft_wrap=True)
+    if flight is None:
+        console.print(f"[yellow]{escape(plan.source)}: plan passes the checks; not flown in simulation (--no-simulate)[/]",
+                      soft_wrap=True)
+        return
+    p = flight.performance
+    console.print(f"flown in simulation over [0, {flight.window_s[1]:g}] s in {flight.result.wall_s:.1f} s: worst over the "
+                  f"settled window [{flight.window_s[0]:.3g} s, {flight.window_s[1]:g} s] {p.worst_position_m:.3g} m "
+                  f"(drone {p.worst_position_drone}), {p.worst_attitude_rad:.3g} rad (drone {p.worst_attitude_drone}); "
+                  f"bounds {p.position_bound_m:g} m, {p.attitude_bound_rad:g} rad", soft_wrap=True)
+    console.print(f"[green]{escape(plan.source)}: plan OK[/]", soft_wrap=True)
+
+
+def _shown(n: int) -> list[int]:
+    """Rows of a per-drone table: all for up to 20 drones, else the first ten and the last five."""
+    return list(range(n)) if n <= 20 else list(range(10)) + list(range(n - 5, n))
+
+
+def _eigenvalue_list(eigs: np.ndarray) -> str:
+    if eigs.size <= 24:
+        return ", ".join(_complex(z) for z in eigs)
+    values, counts = np.unique(np.round(eigs, 6), return_counts=True)
+    if values.size <= 24:
+        return ", ".join(f"{_complex(z)}{f' (x{k})' if k > 1 else ''}" for z, k in zip(values, counts))
+    return f"{eigs.size} eigenvalues, real parts {eigs.real.min():.4g} to {eigs.real.max():.4g}"
+
+
+def _print_certificate(plan: Plan) -> None:
+    cert = plan.certificate
+    facts = Table.grid(padding=(0, 2))
+    facts.add_column(style="bold")
+    facts.add_column()
+    growth = math.exp(0.5 * cert.log_growth_per_cycle)
+    facts.add_row("bound per cycle", f"x{growth:.3g} on ||delta|| every {cert.cycle_s:g} s "
+                                     f"({'decays' if cert.certified else 'does not decay'})")
+    if cert.certified:
+        facts.add_row("decay rate", f"{cert.decay_rate_1_s:.3g} 1/s on average")
+        facts.add_row("transient", f"||delta(t)|| <= {cert.transient_bound:.3g} ||delta(0)||")
+    dwell = cert.min_dwell_s
+    facts.add_row("switching", "any switching signal" if cert.any_switching else
+                  f"every {cert.period_s:g} s; this bound needs at least "
+                  f"{dwell:.3g} s" if math.isfinite(dwell) else "no switching period makes this bound decay")
+    if cert.best is not None:
+        facts.add_row("Lyapunov function", cert.best.candidate)
+    console.print(Panel(facts, title="certificate of the switched formation error (docs/formations.md)", expand=False))

@@ -13,8 +13,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+def _below_ephemeral() -> tuple[int, int]:
+    """Ports to pick listening ports from: below the kernel's ephemeral range, which it hands to
+    every outgoing connection (a port picked there may be taken by one before it is bound)."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return max(1024, low - 20000), low
+
+
 def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[int]:
-    """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count)."""
+    """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count), picked below the
+    kernel's ephemeral range. (For the companions' listening ports, which their peers must know
+    before they start; everything that can bind port 0 does.)"""
     import random
 
     def free(port: int) -> bool:
@@ -29,12 +41,13 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[i
         return True
 
     rng = random.Random()
+    lo, hi = _below_ephemeral()
     for _ in range(tries):
         if contiguous:
-            base = rng.randrange(20000, 60000 - count)
+            base = rng.randrange(lo, hi - count - 1)
             ports = list(range(base + 1, base + count + 1))
         else:
-            ports = [rng.randrange(20000, 60000) for _ in range(count)]
+            ports = [rng.randrange(lo, hi) for _ in range(count)]
         if len(set(ports)) == count and all(free(p) for p in ports):
             return ports
     raise RuntimeError("no free ports found")

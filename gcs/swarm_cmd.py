@@ -133,9 +133,18 @@ def upload(
             report(f"plan {plan.name} ({pid:08x}) uploaded, not started" if no_start else
                    f"plan {plan.name} ({pid:08x}): not started, the plan in force stays", outcomes)
             return
-        start = time.time() + start_in_s
+        start = flight_clock(link) + start_in_s
         report(f"plan {plan.name} ({pid:08x}) starts at {time.strftime('%H:%M:%S', time.localtime(start))}",
                start_all(link, chosen, pid, start))
+
+
+def flight_clock(link: GroundLink, wait_s: float = 2.0) -> float:
+    """The flight controllers' clock (a simulator's in lockstep), as Unix time; the wall clock if
+    none has told its time within ``wait_s`` (they send SYSTEM_TIME once a second)."""
+    deadline = time.monotonic() + wait_s
+    while not (now := link.fc_now()) == now and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return now if now == now else time.time()
 
 
 def upload_all(link: GroundLink, chosen: list[int], items) -> dict[int, tuple[bool, str]]:

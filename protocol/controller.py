@@ -6,7 +6,7 @@ One tick of an agent, at time t with measured output y = (eta, lambda):
     v     = protocol_input(...)              # (72), from own and neighbours' xi at t + lead_s
     act   = controller.actuate(v)            # rotor speeds and servo angles to send now
 
-What this adds to the paper's law, and why (see README, "Control design"):
+What this adds to the paper's law, and why (see docs/control-design.md):
 
 * Servo delay. The servos act d = servo_delay_s after their command, the motors at once. The motor
   command is held back by the same d in software, which turns the mixed delay into a pure input
@@ -103,14 +103,15 @@ class FormationController:
         A, B, C, F = design.observer_model()
         self.n_z = A.shape[0]
         cF = design.c * F
-        self._Phi, self._Gv, self._Gy0, self._Gy1 = _zoh_foh(A - cF @ C, B, cF, self.dt_s)
-        Phi1, G1 = _zoh(A, B, self.dt_s)
+        # contiguous copies: the compiled loops index them row by row
+        self._Phi, self._Gv, self._Gy0, self._Gy1 = map(np.ascontiguousarray, _zoh_foh(A - cF @ C, B, cF, self.dt_s))
+        Phi1, G1 = map(np.ascontiguousarray, _zoh(A, B, self.dt_s))
         self._Phi1, self._G1 = Phi1, G1
         # Prediction over the pipe: z(t + D dt) = Phi1^D z + sum_j Phi1^(D-1-j) G1 v_j.
         self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
         self._pred_G = np.array([np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1
                                  for j in range(self.lead_ticks)]).reshape(self.lead_ticks, self.n_z, 6)
-        self._half_Phi, self._half_G = _zoh(A, B, 0.5 * self.dt_s)
+        self._half_Phi, self._half_G = map(np.ascontiguousarray, _zoh(A, B, 0.5 * self.dt_s))
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
         self._adapt_k = self.adaptation_rate * self.dt_s if self._Einv is not None else 0.0

@@ -139,16 +139,6 @@ class RotatingPolygon(Formation):
         return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=att)
 
     def kinematics(self, t_s: float) -> Kinematics:
-        """(The last few instants are kept: the agents of one process ask for the same ones.)"""
-        recent = self._recent
-        k = recent.get(t_s)
-        if k is None:
-            k = recent[t_s] = self._kinematics(t_s)
-            if len(recent) > 8:
-                recent.popitem(last=False)
-        return k
-
-    def _kinematics(self, t_s: float) -> Kinematics:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
         ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
         s, c = np.sin(ang), np.cos(ang)
@@ -159,9 +149,34 @@ class RotatingPolygon(Formation):
         p_dot[:, 0], p_dot[:, 1] = R * w * c, -R * w * s
         p_ddot[:, 0], p_ddot[:, 1] = -R * w * w * s, -R * w * w * c
         z3 = np.zeros((n, 3))
-        for a in (p, p_dot, p_ddot, z3):
-            a.setflags(write=False)
         return Kinematics(p, p_dot, p_ddot, self.attitude_rad, z3, z3)
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``kinematics(t).offsets()`` written straight into h and h_dot (the control loop's hot
+        path). The last few instants are kept, read-only: the agents of one companion process ask
+        for the same ones."""
+        recent = self._recent
+        found = recent.get(t_s)
+        if found is None:
+            found = recent[t_s] = self._offsets(t_s)
+            if len(recent) > 8:
+                recent.popitem(last=False)
+        return found
+
+    def _offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
+        ang = w * t_s + self.phase0_rad + (2.0 * np.pi / n) * np.arange(n)
+        s, c = np.sin(ang), np.cos(ang)
+        h = np.zeros((n, 12))
+        h_dot = np.zeros((n, 12))
+        h[:, 0], h[:, 1] = R * w * c, -R * w * s              # p_dot
+        h[:, 6:9] = self.attitude_rad                          # eta
+        h[:, 9], h[:, 10], h[:, 11] = R * s, R * c, self.altitude_m  # p
+        h_dot[:, 0], h_dot[:, 1] = -R * w * w * s, -R * w * w * c    # p_ddot
+        h_dot[:, 9:11] = h[:, 0:2]                              # p_dot
+        h.setflags(write=False)
+        h_dot.setflags(write=False)
+        return h, h_dot
 
 
 @dataclass(frozen=True)
@@ -260,6 +275,29 @@ class Blend(_Transition):
     differentiated with the product rule, so (76) holds throughout. Before t0 it is ``source``,
     after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
     exactly where and how fast that source is."""
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``kinematics(t).offsets()``, blended in offset coordinates (the control loop's hot path):
+        h = [p_dot, eta_dot, eta, p] holds every value and first derivative, h_dot[:, 0:6] the
+        second derivatives."""
+        T = self.duration_s
+        s, ds, dds = quintic_blend((t_s - self.t0_s) / T)
+        if s == 1.0:
+            return self.target.offsets(t_s)
+        ha, ha_dot = self.source.offsets(t_s)
+        if s == 0.0:
+            return ha, ha_dot
+        hb, hb_dot = self.target.offsets(t_s)
+        ds, dds = ds / T, dds / (T * T)
+        value = (9, 10, 11, 6, 7, 8)  # p, eta: in the order of the derivatives in h[:, 0:6]
+        xa, xb = ha[:, value], hb[:, value]
+        d, d_d, d_dd = xb - xa, hb[:, 0:6] - ha[:, 0:6], hb_dot[:, 0:6] - ha_dot[:, 0:6]
+        x = xa + s * d
+        x_d = ha[:, 0:6] + s * d_d + ds * d
+        x_dd = ha_dot[:, 0:6] + s * d_dd + 2.0 * ds * d_d + dds * d
+        h = np.concatenate([x_d, x[:, 3:6], x[:, 0:3]], axis=1)
+        h_dot = np.concatenate([x_dd, x_d[:, 3:6], x_d[:, 0:3]], axis=1)
+        return h, h_dot
 
     def kinematics(self, t_s: float) -> Kinematics:
         T = self.duration_s

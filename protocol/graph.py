@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -68,9 +69,11 @@ class Topology:
     def n_agents(self) -> int:
         return self.adjacency.shape[0]
 
-    @property
+    @cached_property
     def in_degree(self) -> np.ndarray:
-        return self.adjacency.sum(axis=1)
+        d = self.adjacency.sum(axis=1)
+        d.setflags(write=False)
+        return d
 
     @property
     def laplacian(self) -> np.ndarray:
@@ -181,9 +184,99 @@ def triangles(n: int) -> Topology:
     return Topology.from_edges("triangles", n, edges, _pins(n, 1, 2))
 
 
-FAMILIES = {"two-chain": two_chain, "triangles": triangles, "reverse-two-chain": reverse_two_chain}
-"""Topology families defined for any number of agents; every agent hears two others (or the leader)
-when N >= 3, so removing any one agent leaves Assumption 1 intact in the two chains."""
+PAPER_FAMILIES = {"two-chain": two_chain, "triangles": triangles, "reverse-two-chain": reverse_two_chain}
+"""The case study's three families, defined for any N: every agent hears two others (or the leader)
+when N >= 3, so removing any one agent leaves Assumption 1 intact in the two chains. Their depth
+from the leader grows like N/2, and switching between the two chains (opposite root ends) makes
+transients grow with N: use them for small swarms only (``default_families``)."""
+
+RING_ROOTS = 3
+"""Agents pinned to the leader in the ring trees: spread evenly around the ring."""
+
+
+def ring_levels(n: int, roots: int = RING_ROOTS) -> tuple[np.ndarray, np.ndarray]:
+    """The levels of the ring trees: ``roots`` agents spread evenly by index (for a rotating
+    polygon, index order is ring order) are level 0; then, recursively, the agent halfway along
+    each gap between two placed agents joins the next level. Returns (level (N,), bounds (N, 2)):
+    bounds[i] are the agents (from 0) that bound the gap agent i halves, -1 for the roots. Depth is
+    about log2(N / roots) + 1."""
+    r = min(roots, n)
+    root_idx = [(k * n) // r for k in range(r)]
+    level = np.full(n, -1)
+    bounds = np.full((n, 2), -1)
+    level[root_idx] = 0
+    gaps = [(root_idx[k], root_idx[(k + 1) % r] + (n if k + 1 == r else 0)) for k in range(r)]
+    while gaps:
+        nxt = []
+        for a, b in gaps:  # agents strictly between a and b (indices mod n) are not placed yet
+            if b - a < 2:
+                continue
+            mid = (a + b) // 2
+            level[mid % n] = 1 + max(level[a % n], level[b % n])
+            bounds[mid % n] = (a % n, b % n)
+            nxt += [(a, mid), (mid, b)]
+        gaps = nxt
+    return level, bounds
+
+
+def _ring_tree(name: str, n: int, side: str) -> Topology:
+    """A ring tree: the roots hear the leader; every other agent hears two agents of lower levels,
+    with weight 1/2 each, so every agent averages what it hears and every eigenvalue of L + G is 1.
+    ``side`` picks them: "both" the two agents bounding its gap (its nearest lower-level agents on
+    each side of the ring); "left"/"right" the nearest two lower-level agents on that side. All
+    three share the levels, are acyclic along them, and every non-root agent hears two distinct
+    agents of lower levels, so losing any one agent leaves every other agent a path from the leader."""
+    level, bounds = ring_levels(n)
+    A = np.zeros((n, n))
+    g = (level == 0).astype(float)
+    for i in np.flatnonzero(level > 0):
+        lower = np.flatnonzero(level < level[i])
+        if side == "both":
+            heard = list(bounds[i])
+        else:
+            step = -1 if side == "left" else 1
+            ring = [(i + step * k) % n for k in range(1, n)]
+            heard = [j for j in ring if level[j] < level[i]][:2]
+        heard = sorted(set(heard))
+        if not heard or not set(heard) <= set(lower):
+            raise AssertionError(f"ring tree {name}: agent {i + 1} would hear {heard}, not lower-level agents")
+        A[i, heard] = 1.0 / len(heard)
+    return Topology(name, A, g)
+
+
+def ring_tree(n: int) -> Topology:
+    """Each non-root agent hears the two agents bounding the gap it halves (see ``_ring_tree``)."""
+    return _ring_tree("ring-tree", n, "both")
+
+
+def ring_tree_left(n: int) -> Topology:
+    """Each non-root agent hears the nearest two lower-level agents before it on the ring."""
+    return _ring_tree("ring-tree-left", n, "left")
+
+
+def ring_tree_right(n: int) -> Topology:
+    """Each non-root agent hears the nearest two lower-level agents after it on the ring."""
+    return _ring_tree("ring-tree-right", n, "right")
+
+
+RING_FAMILIES = {"ring-tree": ring_tree, "ring-tree-left": ring_tree_left, "ring-tree-right": ring_tree_right}
+"""Families whose depth grows like log2 N, with three pinned agents and two in-neighbours each.
+They share their levels, so one diagonal Lyapunov function serves all three and any switching
+between them is certified (``certificate``)."""
+
+FAMILIES = {**PAPER_FAMILIES, **RING_FAMILIES}
+"""Every topology family defined for any number of agents, by name."""
+
+PAPER_FAMILIES_MAX_AGENTS = 6
+"""``default_families``: up to this many drones, the paper's three families; above, the ring trees."""
+
+
+def default_families(n: int) -> list[str]:
+    """The families a plan that names none switches between: the paper's three for the case study's
+    size (N <= PAPER_FAMILIES_MAX_AGENTS), the ring trees above, where the chains' depth N/2 makes
+    their transients grow too large to certify (with the default coupling margin the certificate
+    vouches for the paper's three up to 8 drones)."""
+    return list(PAPER_FAMILIES if n <= PAPER_FAMILIES_MAX_AGENTS else RING_FAMILIES)
 
 
 def _closure(adjacency: np.ndarray, seed: np.ndarray) -> np.ndarray:

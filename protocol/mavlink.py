@@ -216,9 +216,9 @@ class ActuatorDecode:
 
 def encode_actuators(omega_rad_s, alpha_rad, max_rotor_speed_rad_s: float, servo_limit_rad: float) -> list[float]:
     """Rotor speeds [rad/s] and servo angles [rad] (3 each) to controls[8]."""
-    w = np.asarray(omega_rad_s, dtype=float) / max_rotor_speed_rad_s
-    a = np.asarray(alpha_rad, dtype=float) / servo_limit_rad
-    return [float(x) for x in np.concatenate([np.clip(w, 0.0, 1.0), np.clip(a, -1.0, 1.0), [0.0, 0.0]])]
+    w = [min(max(float(x) / max_rotor_speed_rad_s, 0.0), 1.0) for x in omega_rad_s]
+    a = [min(max(float(x) / servo_limit_rad, -1.0), 1.0) for x in alpha_rad]
+    return w + a + [0.0, 0.0]
 
 
 def decode_actuators(controls, max_rotor_speed_rad_s: float, servo_limit_rad: float) -> ActuatorDecode:

@@ -36,6 +36,9 @@ class Performance:
     convergence_time_s: float | None
     position_bound_m: float
     attitude_bound_rad: float
+    worst_position_t_s: float = float("nan")
+    """When the worst position error was seen (NaN for an empty window)."""
+    worst_attitude_t_s: float = float("nan")
 
     @property
     def within_bounds(self) -> bool:
@@ -48,6 +51,8 @@ class Performance:
             "worst_position_error_drone": self.worst_position_drone,
             "worst_attitude_error_rad": self.worst_attitude_rad,
             "worst_attitude_error_drone": self.worst_attitude_drone,
+            "worst_position_error_t_s": self.worst_position_t_s,
+            "worst_attitude_error_t_s": self.worst_attitude_t_s,
             "convergence_time_s": self.convergence_time_s,
             "position_bound_m": self.position_bound_m,
             "attitude_bound_rad": self.attitude_bound_rad,
@@ -63,11 +68,13 @@ def assess(t_s: np.ndarray, pos_err: np.ndarray, att_err: np.ndarray, window_sta
     run that ended early) counts as infinitely bad."""
     att_max = att_err.max(axis=2)
     w = t_s >= window_start_s
+    t_p = t_a = float("nan")
     if w.any():
-        wp, wa = pos_err[w], att_max[w]
+        wp, wa, tw = pos_err[w], att_max[w], t_s[w]
         worst_p, worst_a = float(wp.max()), float(wa.max())
-        drone_p = int(np.unravel_index(np.argmax(wp), wp.shape)[1]) + 1
-        drone_a = int(np.unravel_index(np.argmax(wa), wa.shape)[1]) + 1
+        k_p, drone_p = np.unravel_index(np.argmax(wp), wp.shape)
+        k_a, drone_a = np.unravel_index(np.argmax(wa), wa.shape)
+        drone_p, drone_a, t_p, t_a = int(drone_p) + 1, int(drone_a) + 1, float(tw[k_p]), float(tw[k_a])
     else:
         worst_p = worst_a = float("inf")
         drone_p = drone_a = 0
@@ -76,4 +83,5 @@ def assess(t_s: np.ndarray, pos_err: np.ndarray, att_err: np.ndarray, window_sta
     if ok.size and ok[-1]:
         bad = np.flatnonzero(~ok)
         conv = float(t_s[bad[-1] + 1]) if bad.size else float(t_s[0])
-    return Performance(window_start_s, worst_p, worst_a, drone_p, drone_a, conv, position_bound_m, attitude_bound_rad)
+    return Performance(window_start_s, worst_p, worst_a, drone_p, drone_a, conv, position_bound_m, attitude_bound_rad,
+                       t_p, t_a)

@@ -8,6 +8,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
 
     name = "paper-hexagon"
     drones = 6
+    duration_s = 60   # the plan's length: what plan check checks and flies (default below)
     [airframe]        # the controller's nominal airframe; fields of Airframe, default Table 1
     [leader]          position_m = [x, y, z], attitude_rad = [roll, pitch, yaw]
     [formation]       type = "rotating-polygon" | "constant" | "keyframes", see _formation()
@@ -17,6 +18,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
     [controller]      rate_hz, thrust_adaptation_rate_1_s
+    [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
 """
 
 from __future__ import annotations
@@ -31,12 +33,15 @@ import numpy as np
 
 from . import graph as graph_mod
 from .airframe import RPM_TO_RAD_S, Airframe, ParameterError
+from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
                         RotatingPolygon)
 from .graph import GraphError, Schedule, Topology
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
+from .separation import Approach, closest_approach
+from .sizing import SizingError, resized_spec
 
 
 class PlanError(ValueError):
@@ -48,6 +53,19 @@ DEFAULT_R = (1e-6,) * 6
 DEFAULT_Q_BAR = (1.0,) * 6 + (1e-4,) * 6
 DEFAULT_R_BAR = (0.005**2,) * 3 + (0.02**2,) * 3
 DEFAULT_Q_DISTURBANCE = (100.0,) * 3 + (1000.0,) * 3
+DEFAULT_COUPLING_MARGIN = 2.25
+"""c = 2.25 / (2 lambda_R), measured (docs/formations.md): the certificate vouches for the case study
+(its switching needs 2.5 s between switches; it switches every 5 s) and for the ring trees at any N,
+which margin 1 cannot; the case study keeps its bounds with noise, mismatch and servo delays up to
+20 ms; and a 100 Hz controller still flies it (from a margin of 2.5, where c |lambda| of the
+triangles graph reaches 6.2, it does not)."""
+DEFAULT_DURATION_S = 60.0
+MIN_SETTLED_WINDOW_S = 20.0
+"""A plan that gives no duration_s lasts 60 s, or longer (whole seconds) so that its settled window
+lasts this long."""
+SEPARATION_ARM_LENGTHS = 8.0
+"""Default minimum separation: 8 arm lengths (1.84 m for Table 1's 0.23 m arm), four times the span
+between rotor axes: room for the rotor discs, their downwash and the tracking error."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +78,20 @@ class EntrySettings:
     """Duration of that climb (quintic, rest to rest)."""
     blend_s: float = 12.0
     """Duration of the quintic blend from the climbed position into the formation."""
+
+
+@dataclass(frozen=True)
+class CheckSettings:
+    """What ``plan check`` holds the plan to (besides Algorithm 1's conditions)."""
+
+    min_separation_m: float
+    """No two drones closer than this along the reference x0 + h_i(t) [m]."""
+    position_bound_m: float = 0.10
+    """Flown in simulation, every drone within this of its reference over the settled window [m]."""
+    attitude_bound_rad: float = 0.02
+    """... and within this in roll, pitch and yaw [rad]."""
+    settle_s: float = 10.0
+    """The settled window starts this long after the entry (climb and blend) ends [s]."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +114,9 @@ class Plan:
     schedule: Schedule
     weights: DesignWeights
     controller: ControllerSettings
+    check_settings: CheckSettings
+    duration_s: float
+    """The plan's length: checked and flown over [0, duration_s]."""
     source: str = "plan"
     spec: dict = field(default_factory=dict, compare=False, repr=False)
     """The dict the plan was built from (to rebuild it for another number of drones)."""
@@ -97,6 +132,25 @@ class Plan:
         except (GraphError, ParameterError) as exc:
             raise PlanError(f"{self.source}: {exc}") from None
 
+    @cached_property
+    def certificate(self) -> Certificate:
+        """The bound on the formation error of the nominal loop under the plan's switching
+        (``certificate``), with the design's c."""
+        d = self.design
+        loop = LoopMatrices(d.A_r, d.B_r, self.weights.Q, self.weights.R, d.P)
+        topologies = self.schedule.topologies
+        return certify(loop, d.c, [t.L_plus_G for t in topologies], self.schedule.period_s,
+                       [t.name for t in topologies])
+
+    @property
+    def entry_end_s(self) -> float:
+        return self.entry.climb_s + self.entry.blend_s
+
+    @property
+    def settled_from_s(self) -> float:
+        """Start of the settled window over which a flight is judged: the entry's end plus settle_s."""
+        return self.entry_end_s + self.check_settings.settle_s
+
     def leader_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """x0(t) and its derivative, (12,) each."""
         h, h_dot = self.leader.offsets(t_s)
@@ -108,10 +162,45 @@ class Plan:
         h, h_dot = self.formation.offsets(t_s)
         return x0 + h, x0_dot + h_dot
 
-    def check(self, horizon_s: float = 60.0, step_s: float = 0.1) -> Design:
+    def check(self, horizon_s: float | None = None, step_s: float = 0.1) -> Design:
+        """Everything but the flight over [0, horizon_s] (default: the plan's duration):
+        ``check_formation``, then ``safety_problems``. Returns the design."""
+        d = self.check_formation(horizon_s, step_s)
+        problems = self.safety_problems(horizon_s, step_s)
+        if problems:
+            raise PlanError(f"{self.source}: {problems[0]}")
+        return d
+
+    def safety_problems(self, horizon_s: float | None = None, step_s: float = 0.1) -> list[str]:
+        """What the formation law and the airframe allow but would still end badly, one sentence
+        each: a switching schedule the certificate cannot vouch for, drones closer than
+        check.min_separation_m along the reference."""
+        problems = [schedule_problem(self)]
+        approach = self.closest_approach(horizon_s, step_s)
+        sep = self.check_settings.min_separation_m
+        if approach is not None and approach.distance_m < sep:
+            i, j = approach.pair
+            problems.append(f"drones {i + 1} and {j + 1} come within {approach.distance_m:.2f} m of each other at "
+                            f"t = {approach.t_s:.4g} s along the reference, closer than the minimum separation "
+                            f"{sep:g} m (check.min_separation_m)")
+        return [p for p in problems if p is not None]
+
+    def closest_approach(self, horizon_s: float | None = None, step_s: float = 0.1) -> Approach | None:
+        """The closest two drones come along x0 + h_i(t) over [0, horizon_s] (``separation``)."""
+        horizon_s = self.duration_s if horizon_s is None else horizon_s
+        times = np.arange(0.0, horizon_s + 1e-9, step_s)
+        refs = {float(t): self.reference(float(t)) for t in times}
+        speed = max(float(np.linalg.norm(x[:, 0:3], axis=1).max()) for x, _ in refs.values())
+        accel = max(float(np.linalg.norm(x_dot[:, 0:3], axis=1).max()) for _, x_dot in refs.values())
+        bound = speed + accel * step_s  # the speed may peak between samples
+        return closest_approach(lambda t: (refs[t][0][:, 9:12], refs[t][0][:, 0:3]), times, bound,
+                                self.check_settings.min_separation_m)
+
+    def check_formation(self, horizon_s: float | None = None, step_s: float = 0.1) -> Design:
         """Algorithm 1's checks: (76) for every drone over the horizon, Assumption 1 for every
         topology, (91) and the Hurwitz conditions (77); then that the formation asks no more of
         the airframe than its motors and servos give (``actuator_demand``). Returns the design."""
+        horizon_s = self.duration_s if horizon_s is None else horizon_s
         d = self.design
         times = np.arange(0.0, horizon_s + 1e-9, step_s)
         try:
@@ -142,20 +231,30 @@ class Plan:
         return Blend(climb, target or self.formation, t0_s + self.entry.climb_s, self.entry.blend_s)
 
     def with_agents(self, n_agents: int) -> "Plan":
-        """The same plan for another number of drones (formation and topology must be defined for
-        any N: rotating polygon and topology families)."""
-        spec = dict(self.spec)
-        spec["drones"] = n_agents
-        for key in ("formation", "topology"):
-            if key in spec:
-                spec[key] = dict(spec[key])
-        if spec.get("formation", {}).get("type") != "rotating-polygon":
-            raise PlanError(f"{self.source}: only a rotating-polygon formation can be resized to {n_agents} drones")
-        if "graphs" in spec.get("topology", {}):
-            raise PlanError(f"{self.source}: explicit topology graphs cannot be resized; use topology families")
-        if isinstance(spec["formation"].get("attitude_rad"), list) and np.ndim(spec["formation"]["attitude_rad"]) == 2:
-            raise PlanError(f"{self.source}: per-drone attitudes cannot be resized to {n_agents} drones")
+        """The same plan for another number of drones, sized so that neighbours keep their
+        separation (``sizing.resized_spec``)."""
+        try:
+            spec = resized_spec(self.spec, n_agents, self.check_settings.min_separation_m, self.entry.blend_s)
+        except SizingError as exc:
+            raise PlanError(f"{self.source}: {exc}") from None
         return plan_from_dict(spec, self.source)
+
+
+def schedule_problem(plan: Plan) -> str | None:
+    """Why the certificate cannot vouch for the plan's switching (one sentence), or None."""
+    cert = plan.certificate
+    if cert.certified:
+        return None
+    names = plan.schedule.topologies
+    what = (f"switching every {cert.period_s:g} s between {', '.join(t.name for t in names)}" if len(names) > 1
+            else f"topology {names[0].name}")
+    growth = math.exp(0.5 * min(cert.log_growth_per_cycle, 1400.0))
+    dwell = (f"this bound needs at least {cert.min_dwell_s:.3g} s between switches" if math.isfinite(cert.min_dwell_s)
+             else f"no switching period makes this bound decay with coupling margin {plan.weights.coupling_margin:g}")
+    hint = (f"or use the {', '.join(graph_mod.RING_FAMILIES)} families, certified for any switching at any N"
+            if any(t.name not in graph_mod.RING_FAMILIES for t in names) else "or raise design.coupling_margin")
+    return (f"topology schedule cannot be certified: {what} lets the bound on the formation error grow "
+            f"{growth:.3g}x per cycle; {dwell} ({hint})")
 
 
 def actuator_demand(rfl: RFL, leader: Formation, formation: Formation, times_s: np.ndarray) -> "ActuatorDemand":
@@ -364,7 +463,7 @@ def _schedule(f: _Fields, n: int) -> Schedule:
                 topologies.append(Topology.from_edges(name, n, [tuple(e) for e in edges], pinned))
                 gf.done()
         else:
-            families = families if families is not None else list(graph_mod.FAMILIES)
+            families = families if families is not None else graph_mod.default_families(n)
             if not isinstance(families, list) or not families:
                 raise PlanError(f"{f.where('families')} must list at least one topology family")
             for name in families:
@@ -387,7 +486,7 @@ def _weights(f: _Fields) -> DesignWeights:
             R=f.array("R_diag", (6,), DEFAULT_R),
             Q_bar=f.array("Q_bar_diag", (12,), DEFAULT_Q_BAR),
             R_bar=f.array("R_bar_diag", (6,), DEFAULT_R_BAR),
-            coupling_margin=f.number("coupling_margin", 1.0),
+            coupling_margin=f.number("coupling_margin", DEFAULT_COUPLING_MARGIN),
             Q_disturbance=f.array("Q_disturbance_diag", (6,), DEFAULT_Q_DISTURBANCE),
         )
     except ParameterError as exc:
@@ -425,8 +524,24 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     ctrl = ControllerSettings(cf.number("rate_hz", 200.0, positive=True),
                               cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True))
     cf.done()
+    kf = _Fields(source, "check", top.get("check"))
+    checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),
+                           kf.number("position_bound_m", 0.10, positive=True),
+                           kf.number("attitude_bound_rad", 0.02, positive=True),
+                           kf.number("settle_s", 10.0, non_negative=True))
+    kf.done()
+    settled = entry.climb_s + entry.blend_s + checks.settle_s
+    duration = top.number("duration_s", max(DEFAULT_DURATION_S, math.ceil(settled + MIN_SETTLED_WINDOW_S)), positive=True)
+    if duration <= settled:
+        raise PlanError(f"{source}: duration_s ({duration:g} s) must be longer than the entry and its settling "
+                        f"(entry.climb_s + entry.blend_s + check.settle_s = {settled:g} s), so that a flight has a "
+                        f"settled window to be judged over")
     top.done()
-    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, source, dict(data))
+    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, checks, duration, source, dict(data))
+
+
+def default_min_separation_m(af: Airframe) -> float:
+    return SEPARATION_ARM_LENGTHS * af.arm_length_m
 
 
 def spec_from_toml(text: str, source: str) -> dict:
@@ -438,8 +553,9 @@ def spec_from_toml(text: str, source: str) -> dict:
         raise PlanError(f"{source}: not valid TOML ({exc})") from None
 
 
-IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry"})
-"""What a plan put in force during a flight may change: the formation (and its name)."""
+IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry", "duration_s", "check"})
+"""What a plan put in force during a flight may change: the formation (and its name, length and
+what plan check holds it to)."""
 
 
 def in_flight_change_problem(flying: dict, new: dict) -> str | None:

@@ -574,11 +574,11 @@ def _param_name(param_id) -> str:
 
 
 def _ms(now_s: float) -> int:
-    return int(now_s * 1000.0) & 0xFFFFFFFF
+    return round(now_s * 1000.0) & 0xFFFFFFFF  # (round: a time of whole steps is no float error below it)
 
 
 def _us(now_s: float) -> int:
-    return int(now_s * 1e6)
+    return round(now_s * 1e6)
 
 
 # Each builder converts the paper-frame snapshot to MAVLink's NED/FRD here and only here.
@@ -688,7 +688,7 @@ def _actuator_output_status(fc, now_s, s):
 
 
 def _system_time(fc, now_s, s):
-    return mavlink.MAVLink_system_time_message(int((fc.boot_unix_s + now_s) * 1e6), _ms(now_s))
+    return mavlink.MAVLink_system_time_message(round(fc.boot_unix_s * 1e6) + _us(now_s), _ms(now_s))
 
 
 def _autopilot_version(fc, now_s, s):

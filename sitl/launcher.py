@@ -36,6 +36,8 @@ class SitlOptions:
     first_id: int = 1
     """System id of the first vehicle: vehicle i (from 1) is system first_id + i - 1 (a swarm split over
     several hosts); its resting place follows its id (``swarm.ground_grid``)."""
+    params: tuple[tuple[str, float], ...] = ()
+    """Parameter values every vehicle starts with (e.g. sensor noise), as (name, value)."""
     lockstep: LockstepOptions | None = None
     """Step the clock by the companions' answers instead of the wall clock (``lockstep.py``)."""
 
@@ -57,11 +59,16 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
                       seed=opts.seed, first_id=opts.first_id)
-    for fc in swarm.fcs:
+    for i, fc in enumerate(swarm.fcs):
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
             if problem:
                 raise ValueError(f"--rate-hz: {problem}")
+        for name, value in opts.params:
+            problem = fc.set_param(name, value)
+            if problem:
+                raise ValueError(f"--param {name}={value:g}: {problem}")
+        swarm.apply_airframe(i)
     server = SitlServer(swarm, opts.bind, opts.base_port, opts.speedup, opts.lockstep, say=say)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

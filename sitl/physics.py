@@ -86,9 +86,12 @@ def _derivative(s, rho, P, out):
 
 
 @numba.njit(cache=True)
-def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out):
+def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out,
+             applied):
     """Advance every drone n_steps physics steps of dt with the commands held. params (N, 11) and
-    delay_steps (N,) are per drone. Returns hist_pos."""
+    delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
+    rho_out was last computed from (the sines and cosines are reused while they hold). Returns
+    hist_pos."""
     n = state.shape[0]
     H = alpha_hist.shape[1]
     k1 = np.empty(13)
@@ -117,12 +120,15 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                     wj = wmax
                 elif wj < 0.0:
                     wj = 0.0
-                w2 = wj * wj
                 a = alpha_hist[i, lag, j]
-                rho[j] = w2 * math.sin(a)
-                rho[j + 3] = w2 * math.cos(a)
+                if wj != applied[i, j] or a != applied[i, j + 3]:
+                    w2 = wj * wj
+                    rho_out[i, j] = w2 * math.sin(a)
+                    rho_out[i, j + 3] = w2 * math.cos(a)
+                    applied[i, j] = wj
+                    applied[i, j + 3] = a
             for j in range(6):
-                rho_out[i, j] = rho[j]
+                rho[j] = rho_out[i, j]
             s = state[i]
             if landed[i]:
                 # Resting on the ground: lift off only when thrust exceeds weight.
@@ -170,6 +176,20 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                 landed[i] = True
         hist_pos = (hist_pos + 1) % H
     return hist_pos
+
+
+@numba.njit(cache=True)
+def _output(state, y):
+    """y = (roll, pitch, yaw, position) per drone, (N, 6): ``euler_from_quaternion`` and the
+    position, compiled for the control loop."""
+    for i in range(state.shape[0]):
+        qw, qx, qy, qz = state[i, 6], state[i, 7], state[i, 8], state[i, 9]
+        y[i, 0] = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+        y[i, 1] = math.asin(min(max(2.0 * (qw * qy - qz * qx), -1.0), 1.0))
+        y[i, 2] = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        y[i, 3] = state[i, 0]
+        y[i, 4] = state[i, 1]
+        y[i, 5] = state[i, 2]
 
 
 def quaternion_from_euler(eta: np.ndarray) -> np.ndarray:
@@ -245,6 +265,7 @@ class Plant:
         self.hist_pos = 0
         self.rho = np.zeros((self.n, 6))
         """rho (29) actually applied during the last physics step (after limits and delay)."""
+        self._applied = np.full((self.n, 6), np.nan)  # what self.rho was computed from
         self.time_s = 0.0
         self.steps = 0
 
@@ -293,9 +314,16 @@ class Plant:
 
     def advance(self, n_steps: int) -> None:
         self.hist_pos = _advance(self.state, self.landed, self.omega_cmd, self.alpha_cmd, self.alpha_hist,
-                                 self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho)
+                                 self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho,
+                                 self._applied)
         self.steps += int(n_steps)
         self.time_s = self.steps * self.dt_s
+
+    def output(self) -> np.ndarray:
+        """What the controller measures, noise-free: y = (eta [rad], lambda [m]) per drone, (N, 6)."""
+        y = np.empty((self.n, 6))
+        _output(self.state, y)
+        return y
 
     def observe(self) -> PlantState:
         s = self.state

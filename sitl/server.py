@@ -76,8 +76,9 @@ class SitlServer:
         self.say = say
         for fc in swarm.fcs:
             fc.params["SIM_LOCKSTEP"] = float(lockstep is not None)
-        self.boot_unix_s = time.time() - swarm.time_s
-        """Unix time of the flight controllers' boot: their SYSTEM_TIME is this plus simulated time."""
+        self.boot_unix_s = math.floor((time.time() - swarm.time_s) * 1000.0) / 1000.0
+        """Unix time of the flight controllers' boot, a whole millisecond: their SYSTEM_TIME is this plus
+        simulated time (so a start time a whole number of milliseconds after it is one exactly)."""
         self.swarm = swarm
         self.bind_host = bind_host
         self.base_port = base_port
@@ -304,7 +305,7 @@ class SitlServer:
         self.wall_start = loop.time()
         self.end_s = math.inf if duration_s is None else self.swarm.time_s + duration_s
         if self.lockstep is None:  # SYSTEM_TIME = the wall clock at start, then sim time
-            self.boot_unix_s = time.time() - self.swarm.time_s
+            self.boot_unix_s = math.floor((time.time() - self.swarm.time_s) * 1000.0) / 1000.0
         for fc in self.swarm.fcs:
             fc.boot_unix_s = self.boot_unix_s
         try:

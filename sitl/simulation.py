@@ -23,6 +23,10 @@ from triswarm.protocol.plan import Plan
 from .physics import Plant
 
 
+MAX_DISTANCE_M = 1e4
+"""A drone farther than this from the origin (in any axis) has diverged: the run stops."""
+
+
 @dataclass(frozen=True)
 class SensorNoise:
     """Zero-mean Gaussian noise on what the controller measures (standard deviations)."""
@@ -75,6 +79,8 @@ class SimResult:
     start_position_m: np.ndarray
     wall_s: float = 0.0
     diverged_at_s: float | None = None
+    diverged_drone: int | None = None
+    """The first drone (numbered from 1) whose state left the valid range, when one did."""
     thrust_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
@@ -105,7 +111,7 @@ def plant_airframe(plan: Plan, config: SimConfig) -> Airframe:
 
 def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimResult:
     """Fly the plan from rest on the ground for ``config.duration_s``."""
-    design = plan.check(horizon_s=config.duration_s)
+    design = plan.check_formation(horizon_s=config.duration_s)
     n = plan.n_agents
     rate = plan.controller.rate_hz
     sub = int(round(config.physics_hz / rate))
@@ -135,16 +141,16 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     omega_log = np.zeros((n_log, n, 3))
     alpha_log = np.zeros((n_log, n, 3))
     row = 0
-    diverged = None
+    diverged = diverged_drone = None
     wall0 = time.perf_counter()
     lead = ctrl.lead_s
     for k in range(steps + 1):
         t = k * dt
-        obs = plant.observe()
+        y = plant.output()
         if k % log_every == 0 and row < n_log:
             t_log[row] = t
-            pos_log[row] = obs.position_m
-            eta_log[row] = obs.euler_rad
+            pos_log[row] = y[:, 3:6]
+            eta_log[row] = y[:, 0:3]
             w2 = np.hypot(plant.rho[:, 0:3], plant.rho[:, 3:6])
             omega_log[row] = np.sqrt(w2)
             alpha_log[row] = np.arctan2(plant.rho[:, 0:3], plant.rho[:, 3:6])
@@ -153,10 +159,11 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
                 progress(t)
         if k == steps:
             break
-        if not (np.all(np.isfinite(plant.state)) and np.abs(obs.position_m).max() < 1e4):
+        if not (np.all(np.isfinite(plant.state)) and np.abs(y[:, 3:6]).max() < MAX_DISTANCE_M):
             diverged = t
+            bad = ~np.isfinite(plant.state).all(axis=1) | ~(np.abs(y[:, 3:6]).max(axis=1) < MAX_DISTANCE_M)
+            diverged_drone = int(np.flatnonzero(bad)[0]) + 1
             break
-        y = np.concatenate([obs.euler_rad, obs.position_m], axis=1)
         if config.noise is not None:
             y[:, 0:3] += rng.normal(0.0, config.noise.attitude_rad, (n, 3))
             y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))
@@ -171,7 +178,7 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
         plant.advance(sub)
     wall = time.perf_counter() - wall0
     return SimResult(plan, config, af_plant, t_log[:row], pos_log[:row], eta_log[:row], omega_log[:row],
-                     alpha_log[:row], start, wall, diverged, ctrl.thrust_scale.copy())
+                     alpha_log[:row], start, wall, diverged, diverged_drone, ctrl.thrust_scale.copy())
 
 
 def delay_margin(plan: Plan, config: SimConfig, assess_run: Callable[[SimResult], bool],

@@ -16,10 +16,26 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
 
 
-def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]]) -> Path:
-    """examples/paper-hexagon.toml with each (old, new) text replaced (each old must be there),
-    written as tmp_path/plan.toml."""
-    text = PAPER_PLAN_FILE.read_text()
+def pytest_sessionstart(session) -> None:
+    """Compile the numba kernels once, here, before any test (or xdist worker) starts: on a fresh
+    clone every process that needs them would otherwise compile them at the same time, and a
+    whole-stack test's first seconds would go to the compiler."""
+    if hasattr(session.config, "workerinput"):  # an xdist worker: the controller has done it
+        return
+    from triswarm.protocol.controller import FormationController
+    from triswarm.sitl.physics import Plant
+
+    plant = Plant(TABLE_1, 1)
+    plant.reset(np.zeros((1, 3)))
+    plant.advance(1)
+    plant.observe()
+    FormationController.warm_up(plan_from_dict(tomllib.loads(PAPER_PLAN_FILE.read_text())).design, 200.0)
+
+
+def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]], source: Path = PAPER_PLAN_FILE) -> Path:
+    """examples/paper-hexagon.toml (or ``source``) with each (old, new) text replaced (each old must
+    be there), written as tmp_path/plan.toml."""
+    text = source.read_text()
     for old, new in replace:
         assert old in text
         text = text.replace(old, new)

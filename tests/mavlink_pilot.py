@@ -1,5 +1,7 @@
 """A minimal onboard pilot for tests: flies one SITL vehicle over MAVLink with the math core
-(FormationController + protocol (72) pinned to its own reference), event-driven on telemetry."""
+(FormationController + protocol (72) pinned to its own reference), event-driven on telemetry. Every
+command carries the time of the state it answers, so it flies a lockstep SITL too (and answers the
+states it does not command with NaN controls, which command nothing)."""
 
 from __future__ import annotations
 
@@ -68,6 +70,7 @@ class Pilot:
                 return
             self.log.append((t, pos, self.eta.copy()))
             if not send:
+                self.conn.mav.set_actuator_control_target_send(msg.time_boot_ms * 1000, 0, self.sysid, 1, [math.nan] * 8)
                 continue
             y = np.concatenate([self.eta, pos])[None, :]
             if not self.started:
@@ -85,5 +88,5 @@ class Pilot:
             act = self.ctrl.actuate(v)
             controls = encode_actuators(act.omega_rad_s[0], act.alpha_rad[0], self.max_rpm * math.pi / 30.0,
                                         math.radians(self.servo_deg))
-            self.conn.mav.set_actuator_control_target_send(int(t * 1e6), 0, self.sysid, 1, controls)
+            self.conn.mav.set_actuator_control_target_send(msg.time_boot_ms * 1000, 0, self.sysid, 1, controls)
         raise TimeoutError("telemetry stopped")

@@ -17,7 +17,7 @@ _OPEN: list = []  # connections made while a SITL runs; closed when it stops
 
 
 @contextlib.contextmanager
-def sitl_process(tmp_path: Path, n: int = 1, *extra: str, startup_timeout_s: float = 30.0):
+def sitl_process(tmp_path: Path, n: int = 1, *extra: str, startup_timeout_s: float = 120.0):
     """Yield (manifest dict, Popen); SIGTERM on exit and check the process ended by itself."""
     manifest = tmp_path / "manifest.json"
     stats = tmp_path / "stats.json"

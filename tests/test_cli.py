@@ -125,3 +125,29 @@ def test_leader_goto_takes_negative_coordinates(tmp_path):
                         "--manifest", str(tmp_path / "none.json"), "--tlog", str(tmp_path / "g.tlog")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no such swarm manifest" in r.stderr, r.stderr
+
+
+def test_sim_refuses_an_uncertified_schedule_unless_forced(tmp_path):
+    """`sim --drones 30` of a plan that names the paper's families: refused like plan check would;
+    --force flies it anyway, with the reason as a warning."""
+    path = paper_plan_variant(tmp_path, [("switch_period_s = 5.0\n", 'switch_period_s = 5.0\n'
+                                          'families = ["two-chain", "triangles", "reverse-two-chain"]\n')])
+    line = bad(tmp_path, "sim", "--scenario", str(path), "--drones", "30", "--duration", "1")
+    assert "topology schedule cannot be certified" in line and line.endswith("(--force flies it anyway)")
+    r = triswarm("sim", "--scenario", str(path), "--drones", "30", "--duration", "1", "--force", "--no-figures",
+                 "--out", str(tmp_path / "run"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.startswith("triswarm: warning: ") and "topology schedule cannot be certified" in r.stderr
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["drones"] == 30
+
+
+def test_the_cli_reference_is_the_clis_own_help():
+    """docs/cli.md is generated from the CLI (make docs): it must say what --help says today."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "gen_cli_docs.py"), "--check"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr

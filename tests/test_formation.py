@@ -155,3 +155,17 @@ def test_rejoin_relative_to_a_moving_leader():
     f = Rejoin(RelativeTo(hold, leader), RotatingPolygon.paper(6), 2.0, 5.0)
     assert_exact_derivative(f, np.linspace(1.53, 7.53, 25))  # (the acceleration steps at t0 = 2 s)
     assert np.allclose(f.kinematics(2.0).p, hold.kinematics(2.0).p - leader.kinematics(2.0).p)
+
+
+def test_offsets_fast_paths_equal_the_kinematics(paper_plan):
+    """The rotating polygon and the blends write h, h_dot directly in the control loop; they must be
+    exactly what the kinematics give."""
+    from triswarm.protocol.formation import Formation
+
+    start = np.array([[1.0, 2.0, 0.0]] * 6) + np.arange(6)[:, None]
+    entry = paper_plan.entry_formation(start, 0.0)
+    for t in (0.0, 1.3, 3.0, 7.7, 14.9, 15.0, 40.2):
+        for f in (paper_plan.formation, entry):
+            h, h_dot = f.offsets(t)
+            k_h, k_h_dot = Formation.offsets(f, t)  # the base class: kinematics(t).offsets()
+            assert np.allclose(h, k_h, rtol=0, atol=1e-12) and np.allclose(h_dot, k_h_dot, rtol=0, atol=1e-12), t

@@ -1,5 +1,7 @@
 """Graphs: Laplacian and pinning, Assumption 1, the topology families, switching."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -53,7 +55,7 @@ def test_families_satisfy_assumption_1_for_any_size(n):
 
 
 def test_the_paper_scenario_graphs():
-    two_chain, tri, rev = (f(6) for f in graph.FAMILIES.values())
+    two_chain, tri, rev = (f(6) for f in graph.PAPER_FAMILIES.values())
     assert np.allclose(np.sort(two_chain.eigenvalues().real), [1, 2, 2, 2, 2, 2])
     assert np.iscomplexobj(tri.eigenvalues()) and np.abs(tri.eigenvalues().imag).max() > 0.5
     assert tri.eigenvalues().real.min() == pytest.approx(0.534, abs=1e-3)
@@ -66,7 +68,7 @@ def test_the_paper_scenario_graphs():
 
 
 def test_switching_schedule_cycles_every_period():
-    ts = tuple(f(6) for f in graph.FAMILIES.values())
+    ts = tuple(f(6) for f in graph.PAPER_FAMILIES.values())
     s = Schedule(ts, 5.0)
     assert [s.index_at(t) for t in (0, 4.99, 5.0, 9.99, 10.0, 15.0, 31.0)] == [0, 0, 1, 1, 2, 0, 0]
     with pytest.raises(GraphError):
@@ -96,3 +98,62 @@ def test_reachable_through_present_agents_only():
     assert triangles(6).reachable_from_leader(present).tolist() == [True, False, False, True, True, True]
     assert two_chain(6).reachable_from_leader(present).tolist() == [True, False, True, True, True, True]
     assert triangles(6).reachable_from_leader().all()
+
+
+RING_SIZES = list(range(1, 130)) + [200, 333, 1000]
+
+
+def ring_distance(i, j, n):
+    return min((i - j) % n, (j - i) % n)
+
+
+@pytest.mark.parametrize("n", RING_SIZES)
+def test_ring_trees_scale(n):
+    """Three pinned agents, every other agent hears two, depth at most log2(N / 3) + 2, the same
+    levels in every variant and every edge climbing a level (acyclic, so every eigenvalue of L + G
+    is 1: each agent averages what it hears), and the loss of any one agent leaves every other
+    agent a path from the leader."""
+    level, _ = graph.ring_levels(n)
+    assert level.max() <= (math.log2(n / 3) + 2 if n > 3 else 0)
+    for make in graph.RING_FAMILIES.values():
+        t = make(n)
+        assert t.pinning.sum() == min(3, n) and set(np.flatnonzero(t.pinning)) == set(np.flatnonzero(level == 0))
+        heard = t.adjacency > 0
+        if n >= 3:
+            assert np.all(heard.sum(axis=1)[level > 0] == 2)
+        assert np.allclose(t.adjacency.sum(axis=1)[level > 0], 1.0)  # weights 1/in-degree
+        rows, cols = np.nonzero(heard)
+        assert np.all(level[cols] < level[rows])  # every edge climbs a level
+        assert np.allclose(np.diag(t.L_plus_G), 1.0)
+        t.check_assumption_1()
+        for lost in range(n if n <= 333 else 0):  # (1000 agents: 16 s of closures; the proof is by levels)
+            present = np.arange(n) != lost
+            assert t.reachable_from_leader(present)[present].all(), (t.name, lost)
+
+
+@pytest.mark.parametrize("n", [7, 50, 200])
+def test_ring_tree_agents_hear_their_nearest_lower_level_agents_on_the_ring(n):
+    """Locality on the ring (index order is ring order on a rotating polygon): in ring-tree each
+    agent hears the nearest lower-level agent on each side; in the one-sided variants, the nearest
+    two on that side."""
+    level, _ = graph.ring_levels(n)
+    for name, side in (("ring-tree", "both"), ("ring-tree-left", -1), ("ring-tree-right", 1)):
+        t = graph.FAMILIES[name](n)
+        for i in np.flatnonzero(level > 0):
+            heard = set(t.in_neighbours(i))
+            lower = [j for j in range(n) if level[j] < level[i]]
+            if side == "both":
+                left = min(lower, key=lambda j: (i - j) % n)
+                right = min(lower, key=lambda j: (j - i) % n)
+                assert heard == {left, right}
+            else:
+                by_side = sorted(lower, key=lambda j: (side * (j - i)) % n)
+                assert heard == set(by_side[:2])
+        gap = n / 3
+        assert max(ring_distance(i, j, n) for i in range(n) for j in t.in_neighbours(i)) <= 2 * gap
+
+
+def test_default_families_by_size():
+    assert graph.default_families(6) == list(graph.PAPER_FAMILIES)
+    assert graph.default_families(graph.PAPER_FAMILIES_MAX_AGENTS) == list(graph.PAPER_FAMILIES)
+    assert graph.default_families(graph.PAPER_FAMILIES_MAX_AGENTS + 1) == list(graph.RING_FAMILIES)

@@ -1,5 +1,6 @@
 """Third-party MAVLink clients against the SITL, through the manifest: the `mavsdk` package
-(Telemetry, Action, Param plugins) and MAVProxy run non-interactively."""
+(Telemetry, Action, Param plugins) and MAVProxy run non-interactively. On the wall clock, as these
+clients expect a flight controller to be (make test runs them alone, after the others)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from triswarm.protocol.frames import LocalProjection
 from .sitl_helpers import command, connect, read_param, sitl_process
 
 M = mavutil.mavlink
+pytestmark = pytest.mark.realtime
 
 
 async def _wait_for_autopilot(mavsdk, sysid: int, timeout: float):

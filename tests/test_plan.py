@@ -131,9 +131,59 @@ def test_check_refuses_a_formation_pitched_past_the_controllers_limit(paper_spec
 def test_keyframe_plan(paper_spec):
     spec = copy.deepcopy(paper_spec)
     spec["formation"] = {"type": "keyframes", "keyframes": [
-        {"t_s": 0.0, "position_m": [[i * 2.0, 0.0, 10.0] for i in range(6)]},
-        {"t_s": 20.0, "position_m": [[0.0, i * 2.0, 12.0] for i in range(6)], "attitude_rad": [0.0, 0.0, 0.5]},
+        {"t_s": 0.0, "position_m": [[i * 3.0, 0.0, 10.0] for i in range(6)]},
+        {"t_s": 20.0, "position_m": [[0.0, i * 3.0, 12.0] for i in range(6)], "attitude_rad": [0.0, 0.0, 0.5]},
     ]}
     plan = plan_from_dict(spec, "k.toml")
     plan.check(horizon_s=30)
-    assert np.allclose(plan.formation.offsets(25.0)[0][:, 9:12], [[0.0, i * 2.0, 12.0] for i in range(6)])
+    assert np.allclose(plan.formation.offsets(25.0)[0][:, 9:12], [[0.0, i * 3.0, 12.0] for i in range(6)])
+
+
+@pytest.mark.parametrize("n", [7, 50, 200, 1000])
+def test_resized_polygon_keeps_its_neighbours_apart_at_the_same_speed(paper_plan, n):
+    """--drones N: neighbours 1.5 minimum separations (2.76 m) apart, the tangential speed of the
+    case study (10 m/s), a blend long enough to keep its peak acceleration, the ring trees."""
+    p = paper_plan.with_agents(n)
+    ref, _ = p.reference(30.0)
+    pos = ref[:, 9:12]
+    gaps = np.linalg.norm(pos - np.roll(pos, -1, axis=0), axis=1)
+    spacing = 1.5 * 8 * paper_plan.airframe.arm_length_m
+    assert gaps == pytest.approx(np.full(n, max(spacing, 2 * 10.0 * np.sin(np.pi / n))))
+    assert np.linalg.norm(ref[:, 0:3], axis=1) == pytest.approx(np.full(n, 10.0))  # |velocity| = R w
+    R = p.formation.radius_m
+    assert p.entry.blend_s == pytest.approx(12.0 * np.sqrt(max(R, 10.0) / 10.0), abs=0.1)
+    assert [t.name for t in p.schedule.topologies] == ["ring-tree", "ring-tree-left", "ring-tree-right"]
+    assert p.duration_s >= p.settled_from_s + 20.0 and p.duration_s == int(p.duration_s)
+    if n <= 200:
+        p.check()
+
+
+def test_resizing_keeps_the_families_a_plan_names(paper_spec):
+    spec = copy.deepcopy(paper_spec)
+    spec["topology"]["families"] = ["two-chain", "triangles", "reverse-two-chain"]
+    p = plan_from_dict(spec, "named.toml").with_agents(50)
+    assert [t.name for t in p.schedule.topologies] == ["two-chain", "triangles", "reverse-two-chain"]
+    with pytest.raises(PlanError, match=r"^named.toml: topology schedule cannot be certified: switching every 5 s "
+                                        r"between two-chain, triangles, reverse-two-chain lets the bound on the "
+                                        r"formation error grow [0-9.e+]+x per cycle; "):
+        p.check()
+
+
+def test_drones_too_close_along_the_reference_are_refused(paper_spec):
+    """A hexagon's side is its radius: 1.5 m, under the 1.84 m default (8 arm lengths)."""
+    spec = spec_with(paper_spec, ("formation", "radius_m"), 1.5)
+    with pytest.raises(PlanError, match=r"^tight.toml: drones 1 and [26] come within 1.50 m of each other at t = 0 s along "
+                                        r"the reference, closer than the minimum separation 1.84 m \(check.min_separation_m\)$"):
+        plan_from_dict(spec, "tight.toml").check()
+    spec["check"] = {"min_separation_m": 1.4}
+    plan_from_dict(spec, "tight.toml").check()
+
+
+def test_plan_length_and_settled_window(paper_spec):
+    plan = plan_from_dict(paper_spec, "p.toml")
+    assert plan.duration_s == 60.0 and plan.settled_from_s == 25.0  # the paper's [25 s, 50 s] and on
+    with pytest.raises(PlanError, match=r"duration_s \(20 s\) must be longer than the entry and its settling "
+                                        r"\(entry.climb_s \+ entry.blend_s \+ check.settle_s = 25 s\)"):
+        plan_from_dict(spec_with(paper_spec, ("duration_s",), 20.0), "p.toml")
+    longer = plan_from_dict(spec_with(paper_spec, ("entry", "blend_s"), 40.0), "p.toml")
+    assert longer.settled_from_s == 53.0 and longer.duration_s == 73.0

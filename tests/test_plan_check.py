@@ -10,7 +10,9 @@ import sys
 import numpy as np
 import pytest
 
+from triswarm.gcs import plan_flight
 from triswarm.gcs.scenarios import load_plan
+from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol import metrics
 from triswarm.sitl.simulation import SimConfig, simulate
 
@@ -50,10 +52,10 @@ def test_paper_plan_prints_c_and_the_eigenvalues():
     r = plan_check(PAPER_PLAN_FILE)
     assert r.returncode == 0, r.stderr
     assert r.stderr == ""
-    c = float(re.search(r"│ c\s+([0-9.e+-]+) = 1 / \(2 lambda_R\)", r.stdout).group(1))
+    c = float(re.search(r"│ c\s+([0-9.e+-]+) = 2.25 / \(2 lambda_R\)", r.stdout).group(1))
     assert c == pytest.approx(load_plan(str(PAPER_PLAN_FILE)).design.c, rel=1e-5)
     lambda_R = min(sorted_eigenvalues(M)[0].real for M in (TWO_CHAIN, TRIANGLES, REVERSE_TWO_CHAIN))
-    assert c == pytest.approx(1.0 / (2.0 * lambda_R), rel=1e-5)
+    assert c == pytest.approx(2.25 / (2.0 * lambda_R), rel=1e-5)
     row = re.search(r"│ two-chain\s+│\s+([0-9.]+) │ ([0-9., ]+?)\s+│", r.stdout)
     assert float(row.group(1)) == pytest.approx(1.0)
     printed = [float(x) for x in row.group(2).split(", ")]
@@ -81,7 +83,7 @@ def test_json_summary_has_the_eigenvalues_of_every_topology():
 
 
 POLYGON = 'radius_m = 10.0\naltitude_m = 20.0\nrate_rad_s = 1.0\nattitude_rad = "paper-alternating"\n'
-FAMILIES = 'families = ["two-chain", "triangles", "reverse-two-chain"]'
+FAMILIES = 'switch_period_s = 5.0\n'
 OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}.0, 0, 10]" for i in range(6))
 
 
@@ -92,7 +94,7 @@ OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}
     ([("Q_diag = [1.0, ", "Q_diag = [")], "design.Q_diag must have shape (12,)", None),
     ([('type = "rotating-polygon"', 'type = "spiral"')], "formation.type must be", None),
     ([("switch_period_s = 5.0", "switch_period_s = -5.0")], "topology.switch_period_s must be positive", None),
-    ([(FAMILIES, '[[topology.graphs]]\nname = "broken"\npinned = [1]\nedges = [[1, 2], [2, 3], [4, 5], [5, 6]]')],
+    ([(FAMILIES, FAMILIES + '[[topology.graphs]]\nname = "broken"\npinned = [1]\nedges = [[1, 2], [2, 3], [4, 5], [5, 6]]\n')],
      "[topology] topology broken violates Assumption 1", "agents 4, 5, 6"),
     ([('type = "rotating-polygon"\n', f'type = "constant"\noffsets = [{OFFSETS}]\n'), (POLYGON, "")],
      "formation fails the feasibility condition (76)", "drone 3 position rows 10-12"),
@@ -131,7 +133,8 @@ def test_examples_pass_the_check(path):
     r = plan_check(path)
     assert r.returncode == 0, r.stderr
     n = load_plan(str(path)).n_agents
-    assert r.stdout.count("feasible over [0, 60] s") == n and f"{path}: plan OK" in r.stdout
+    assert r.stdout.count("feasible over [0, 60] s") == min(n, 15) and f"{path}: plan OK" in r.stdout  # 10 + 5 rows
+    assert "flown in simulation over [0, 60] s" in r.stdout
 
 
 def test_reshaping_example_flies_within_the_papers_bounds():
@@ -164,3 +167,79 @@ def test_plan_upload_refuses_an_infeasible_plan_before_sending(tmp_path):
             drone.recv(65536)
     finally:
         drone.close()
+
+
+def refused(r, path):
+    """Exit 2, nothing but one sentence on stderr, naming the file."""
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr and "plan OK" not in r.stdout
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"triswarm: error: {path}: ")
+    return lines[0]
+
+
+def test_large_swarm_with_the_papers_families_is_refused(tmp_path):
+    """Fifty drones switching between two chains 25 deep and the triangles: the certificate cannot
+    vouch for it, so plan check refuses it before flying, saying by how much and what would do."""
+    path = paper_plan_variant(tmp_path, [('families = ["ring-tree", "ring-tree-left", "ring-tree-right"]',
+                                          'families = ["two-chain", "triangles", "reverse-two-chain"]')],
+                              ROOT / "examples" / "large-swarm.toml")
+    line = refused(plan_check(path), path)
+    assert re.search(r"topology schedule cannot be certified: switching every 5 s between two-chain, triangles, "
+                     r"reverse-two-chain lets the bound on the formation error grow [0-9.e+]+x per cycle; "
+                     r"this bound needs at least [0-9.]+ s between switches \(or use the ring-tree, ring-tree-left, "
+                     r"ring-tree-right families, certified for any switching at any N\)$", line), line
+    growth = float(re.search(r"grow ([0-9.e+]+)x", line).group(1))
+    assert growth > 1.0
+
+
+@pytest.mark.slow
+def test_a_plan_that_certifies_but_cannot_fly_is_refused_by_the_flight(tmp_path):
+    """The certificate is a continuous-time statement. A controller at 100 Hz is too slow for
+    c |lambda| of the triangles graph with a coupling margin of 3: every check but the flight passes,
+    and the flight diverges."""
+    path = paper_plan_variant(tmp_path, [("rate_hz = 200.0", "rate_hz = 100.0"), ("coupling_margin = 2.25", "coupling_margin = 3.0")])
+    r = plan_check(path, "--no-simulate")
+    assert r.returncode == 0, r.stderr
+    assert "plan passes the checks; not flown in simulation (--no-simulate)" in r.stdout and "plan OK" not in r.stdout
+    line = refused(plan_check(path), path)
+    assert re.search(r"flown in simulation \(the plan's airframe: 10 ms servo delay, 12000 RPM motor limit; from the "
+                     r"ground\), (the formation diverged: drone \d's state left the valid range at t = [0-9.]+ s|"
+                     r"drone \d was [0-9.e+]+ m from its reference at t = [0-9.]+ s, past the 0.1 m bound over the "
+                     r"settled window \[25 s, 60 s\] \(check.position_bound_m\))$", line), line
+
+
+@pytest.mark.slow
+def test_flight_bounds_come_from_the_plan_or_the_command_line(paper_spec):
+    """Tighter than the case study can fly (its worst error over [25 s, 60 s] is about 2e-5 m): refused,
+    naming the drone, the error and the time; the plan's own [check] or the flag give the bound."""
+    r = plan_check(PAPER_PLAN_FILE, "--position-bound-m", "1e-6", "--json")
+    line = refused(r, PAPER_PLAN_FILE)
+    m = re.search(r"drone (\d) was ([0-9.e+-]+) m from its reference at t = ([0-9.]+) s, past the 1e-06 m bound over "
+                  r"the settled window \[25 s, 60 s\] \(check.position_bound_m\)$", line)
+    assert m and 1e-6 < float(m.group(2)) < 1e-3 and 25.0 <= float(m.group(3)) <= 60.0, line
+    spec = dict(paper_spec, check={"position_bound_m": 1e-6})
+    assert "past the 1e-06 m bound" in plan_flight.fly(plan_from_dict(spec, "tight.toml")).problem
+
+
+@pytest.mark.slow
+def test_plan_length_sets_the_horizon_and_the_json_says_it_flew(tmp_path):
+    path = paper_plan_variant(tmp_path, [('drones = 6\n', 'drones = 6\nduration_s = 40.0\n')])
+    r = plan_check(path, "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["feasible_over_s"] == [0.0, 40.0] and summary["ok"] is True
+    assert summary["flight"]["flown"] and summary["flight"]["settled_window_s"] == [25.0, 40.0]
+    assert summary["flight"]["performance"]["worst_position_error_m"] <= 0.10
+    assert summary["certificate"]["certified"] and summary["certificate"]["min_dwell_s"] < 5.0
+    assert summary["separation"]["closest_m"] == pytest.approx(10.0)  # the hexagon's side is its radius
+    r = plan_check(path, "--json", "--no-simulate")
+    assert json.loads(r.stdout)["flight"] == {"flown": False} and json.loads(r.stdout)["ok"] is False
+
+
+def test_separation_flag(tmp_path):
+    path = paper_plan_variant(tmp_path, [("radius_m = 10.0", "radius_m = 3.0")])
+    assert "come within 3.00 m of each other" in refused(plan_check(path, "--min-separation-m", "3.5", "--no-simulate"), path)
+    r = plan_check(path, "--min-separation-m", "-1")
+    assert r.returncode == 2 and r.stderr == "triswarm: error: --min-separation-m must be a positive number, got -1.0\n"

@@ -50,7 +50,8 @@ def test_with_model_mismatch(paper_plan):
 
 def test_delay_margin(paper_plan):
     """The design tolerates servo delays well past the paper's 0.01 s; without the delay
-    compensation the same plant with 0.01 s leaves the bounds (the errata's warning)."""
+    compensation the same plant with 0.01 s flies a hundred times worse (the errata's warning; with
+    the coupling margin of 2.25 it no longer leaves the bounds, as it did at margin 1)."""
     def within(result):
         pos_err, att_err = metrics.formation_errors(paper_plan, result.t_s, result.position_m, result.euler_rad)
         return result.diverged_at_s is None and metrics.assess(result.t_s, pos_err, att_err).within_bounds
@@ -62,5 +63,6 @@ def test_delay_margin(paper_plan):
     result, perf = fly(paper_plan, servo_delay_s=0.02)
     assert result.diverged_at_s is None and perf.worst_position_m <= 0.25 and perf.worst_attitude_rad <= 0.05, perf
 
+    _, compensated = fly(paper_plan)
     _, perf = fly(paper_plan, controller_delay_s=0.0)
-    assert not perf.within_bounds
+    assert perf.worst_position_m > 100 * compensated.worst_position_m, (perf, compensated)

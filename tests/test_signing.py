@@ -119,7 +119,7 @@ def test_signing_streams_survive_a_round_trip_and_garbage_is_skipped(tmp_path):
 # -- the stack ------------------------------------------------------------------------------------
 
 def heard_companion(link: GroundLink) -> None:
-    wait_for(lambda: link.companion(1).heartbeat is not None, 10, "the companion's heartbeat")
+    wait_for(lambda: link.companion(1).heartbeat is not None, 60, "the companion's heartbeat")  # (its start)
 
 
 @pytest.mark.slow

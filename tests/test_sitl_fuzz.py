@@ -10,6 +10,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from pymavlink import mavutil
 from pymavlink.generator.mavcrc import x25crc
 
@@ -68,6 +69,7 @@ def make_frames(rng: np.random.Generator) -> list[tuple[str, bytes]]:
     return [frames[k] for k in order]
 
 
+@pytest.mark.realtime
 def test_vehicle_survives_a_flood_of_bad_frames(tmp_path):
     frames = make_frames(np.random.default_rng(2024))
     assert len(frames) >= 100_000

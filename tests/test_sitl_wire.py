@@ -26,6 +26,7 @@ def count_messages(conn, seconds: float) -> dict:
     return counts
 
 
+@pytest.mark.realtime
 def test_streams_commands_and_clean_exit(tmp_path):
     with sitl_process(tmp_path, 2) as (manifest, proc):
         assert [v["sysid"] for v in manifest["vehicles"]] == [1, 2]
@@ -103,8 +104,9 @@ def test_arming_refused_with_a_reason(tmp_path):
 
 def test_closed_loop_hover_over_mavlink_then_failsafe(tmp_path):
     """The math core flies a SITL vehicle through real sockets and holds a hover setpoint within
-    0.05 m; when its commands stop, the vehicle's own failsafe holds position, and resumes."""
-    with sitl_process(tmp_path, 1) as (manifest, _):
+    0.05 m; when its commands stop, the vehicle's own failsafe holds position, and resumes. (On
+    simulated time: the SITL in lockstep with the pilot.)"""
+    with sitl_process(tmp_path, 1, "--lockstep") as (manifest, _):
         conn = connect(manifest["vehicles"][0]["links"]["companion"]["pymavlink"], sysid=1, compid=191)
         pilot = Pilot(conn, 1)
         assert command(conn, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_ACCEPTED
@@ -138,6 +140,7 @@ def test_closed_loop_hover_over_mavlink_then_failsafe(tmp_path):
         assert "actuator commands back, failsafe cleared" in pilot.statustexts
 
 
+@pytest.mark.realtime
 def test_speedup_keeps_timestamps_consistent(tmp_path):
     with sitl_process(tmp_path, 2, "--speedup", "10") as (manifest, _):
         conn = connect(manifest["vehicles"][0]["links"]["companion"]["pymavlink"])

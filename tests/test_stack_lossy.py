@@ -7,7 +7,7 @@ drops a random 20 % of the relayed UDP datagrams, where the estimates ride (best
 control period). TCP (declarations, liveliness, status, health) is delayed but not dropped: at 20 %
 segment loss TCP's retransmission back-off outlasts Zenoh's 1 s lease now and then, a session
 closes and reconnects, and the agents that lose their path to the leader hold for a moment; that
-case is not handled yet. The MAVLink links to the flight controllers are not impaired.
+case is not handled yet (docs/companion.md, "Absent neighbours, hold, rejoin"). The MAVLink links to the flight controllers are not impaired.
 
 Why real time. Delay and loss reach the control only when the clock is the wall's: on the
 simulator's lockstep clock every companion waits for every estimate, which then rides TCP, so the
@@ -35,10 +35,10 @@ Linux shares the CPU between sessions whatever their processes' niceness), ahead
 other work, as a drone's control loop has a computer of its own; and the companions fly at 100 Hz,
 the plan's 200 Hz halved. Measured with a busy loop beside it and other jobs on the machine (load
 average 5-8): at 100 Hz with that priority the latency p99 is 9-13 ms and 1-4 % of the ticks
-miss; at 200 Hz 30-40 % miss and the formation is lost; at 100 Hz without
-the priority the busy loop alone costs 0.28 rad, and with the other jobs two runs of three failed
-(flight controllers in failsafe; the formation lost). tests/lossy_flight.py starts the plan when all six companions are ready, as an
-operator does, so a slow start-up cannot make one late."""
+miss; at 200 Hz 30-40 % miss and the formation is lost; at 100 Hz without the priority the busy
+loop alone costs 0.28 rad, and with the other jobs two runs of three failed (flight controllers in
+failsafe; the formation lost). tests/lossy_flight.py starts the plan when all six companions are
+ready, as an operator does, so a slow start-up cannot make one late."""
 
 import json
 import os
