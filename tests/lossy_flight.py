@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import sys
@@ -76,7 +77,8 @@ def main() -> None:
                     raise SystemExit(f"companions not ready within {READY_WITHIN_S:.0f} s (dead: {dead})")
                 time.sleep(0.1)
             times["ready_s"] = time.monotonic() - t0
-            start = time.time() + START_IN_S
+            # a whole second of the flight controllers' clock (PLAN_START carries seconds and milliseconds)
+            start = float(math.ceil((link.fc_now() if math.isfinite(link.fc_now()) else time.time()) + START_IN_S))
             started = start_all(link, list(range(1, N + 1)), plan_id(plan.spec), start)
             if not all(ok for ok, _ in started.values()):
                 raise SystemExit(f"the plan did not start: {started}")

@@ -82,19 +82,17 @@ class Hosts:
     def cut(self, host: str, keep: list[tuple[str, int]]) -> None:
         """Cut a host off the network but for loopback and the UDP peers ``keep`` ((address, port):
         e.g. its companions' flight-controller links, a serial line on a drone): iptables in its
-        namespace drops every other packet in and out. The drop rules go in last, all at once."""
-        ns = self.netns[host]
+        namespace drops every other packet in and out, from one atomic iptables-restore."""
+        rules = ""
         for chain, interface, peer, port in (("INPUT", "-i", "-s", "--sport"), ("OUTPUT", "-o", "-d", "--dport")):
-            ns.iptables("-A", chain, interface, "lo", "-j", "ACCEPT")
-            for address, p in keep:
-                ns.iptables("-A", chain, "-p", "udp", peer, address, port, str(p), "-j", "ACCEPT")
-        for chain in ("INPUT", "OUTPUT"):
-            ns.iptables("-A", chain, "-j", "DROP")
+            rules += f"-A {chain} {interface} lo -j ACCEPT\n"
+            rules += "".join(f"-A {chain} -p udp {peer} {address} {port} {p} -j ACCEPT\n" for address, p in keep)
+            rules += f"-A {chain} -j DROP\n"
+        self.netns[host].iptables_restore(rules)
 
     def restore(self, host: str) -> None:
-        """Undo ``cut``: the host's rules flushed, every packet passes again."""
-        for chain in ("INPUT", "OUTPUT"):
-            self.netns[host].iptables("-F", chain)
+        """Undo ``cut``: the host's rules flushed at once, every packet passes again."""
+        self.netns[host].iptables_restore("-F INPUT\n-F OUTPUT\n")
 
     def leftovers(self) -> list[str]:
         """Interfaces and namespaces of ours still there (empty after exit)."""

@@ -71,6 +71,12 @@ class NetNamespace:
         return subprocess.run(self.exec_prefix() + ["iptables", "-w", *args], check=True, capture_output=True,
                               text=True).stdout
 
+    def iptables_restore(self, rules: str) -> None:
+        """Load the filter table's ``rules`` (iptables-save format, without the table line and
+        COMMIT) in one atomic step, on top of what is there."""
+        subprocess.run(self.exec_prefix() + ["iptables-restore", "-w", "--noflush"], input=f"*filter\n{rules}COMMIT\n",
+                       check=True, capture_output=True, text=True)
+
     def rule_packets(self, chain: str = "OUTPUT") -> list[int]:
         """Packets matched by each rule of a chain, in order."""
         out = self.iptables("-L", chain, "-v", "-x", "-n")

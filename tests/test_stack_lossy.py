@@ -51,7 +51,7 @@ import pytest
 from .lossy_flight import N, RELAY_BASE, ZENOH_BASE
 from .netem import NetNamespace
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 DROP = 0.2
 DELAY_MS = 20.0
 RATE_HZ = 100.0
