@@ -12,13 +12,13 @@ import subprocess
 import threading
 from collections import Counter
 
-import pytest
-
 
 def need_netns(tools: tuple[str, ...] = ("ip", "iptables"), problem: str | None = None) -> None:
     """Stop a test that needs network namespaces (and ``tools``) on a machine without them: a
     failure under CI (``CI`` set, as CI services do), where a missing tool is a broken set-up
     (``make test`` installs iproute2 and iptables when it runs as root), and a skip elsewhere."""
+    import pytest
+
     problem = problem or NetNamespace.problem(tools)
     if problem is None:
         return
