@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import resource
 import sys
 import time
@@ -26,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.conftest import PAPER_PLAN_FILE  # noqa: E402
 from tests.netem import DelayRelay  # noqa: E402
+from tests.priority import prioritise  # noqa: E402
 from tests.stack_helpers import judge  # noqa: E402
 from triswarm.gcs.link import GroundLink  # noqa: E402
 from triswarm.gcs.recorder import Recorder  # noqa: E402
@@ -111,21 +111,6 @@ def main() -> None:
               "sitl": {"wall_time_s": sitl["wall_time_s"], "max_lag_s": sitl["max_lag_s"], "overruns": sitl["overruns"]},
               "companions": {i: stack.stats(str(i)) for i in range(1, N + 1)}}
     a.out.write_text(json.dumps(result, indent=1, default=float))
-
-
-def prioritise(nice: int) -> dict:
-    """Put this process, and the stack it starts, ahead of the machine's other work: its niceness,
-    and with autogroups (Linux groups a session's processes and shares the CPU fairly between
-    sessions, whatever their niceness) a session of its own at that niceness too. (Lowering either
-    needs root, as the network namespace does.)"""
-    os.setpriority(os.PRIO_PROCESS, 0, nice)
-    autogroup = Path("/proc/self/autogroup")
-    if autogroup.exists() and nice != 0:
-        if os.getsid(0) != os.getpid():
-            os.setsid()  # (a new session is a new autogroup)
-        autogroup.write_text(str(nice))
-    return {"nice": os.getpriority(os.PRIO_PROCESS, 0),
-            "autogroup": autogroup.read_text().strip() if autogroup.exists() else None}
 
 
 def along_track_lag_ms(plan, rec, start: float, t_from: float, t_to: float) -> dict[int, float]:
