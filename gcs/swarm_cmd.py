@@ -162,10 +162,12 @@ def upload_all(link: GroundLink, chosen: list[int], items) -> dict[int, tuple[bo
 
 
 def start_all(link: GroundLink, chosen: list[int], pid: int, start_unix_s: float) -> dict[int, tuple[bool, str]]:
-    """MAV_CMD_TRISWARM_PLAN_START to every chosen drone: the plan in force from start_unix_s."""
+    """MAV_CMD_TRISWARM_PLAN_START to every chosen drone: the plan in force from start_unix_s (to the
+    millisecond: whole seconds in x, milliseconds in y)."""
+    whole_ms = round(start_unix_s * 1000.0)  # (rounding seconds and milliseconds apart could lose a second)
     return for_each(chosen, lambda i: result_text(*link.command(
         i, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_PLAN_START, [pid >> 16, pid & 0xFFFF], use_int=True,
-        x=int(start_unix_s), y=int(round((start_unix_s % 1.0) * 1000.0)) % 1000)))
+        x=whole_ms // 1000, y=whole_ms % 1000)))
 
 
 def command_all(link: GroundLink, chosen: list[int], compid: int, command: int, params: list[float]) -> dict:
