@@ -23,11 +23,10 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/triswarm demo --plan examples/paper-hexagon.toml
 
-# Two workers for everything on simulated time or with no clock at all; then, alone on the machine,
-# the few tests that judge something on the wall clock (marked realtime).
+# Two workers for everything on simulated time or with no clock at all; beside them, ahead of them
+# (niceness -10, as root), the few tests that judge something on the wall clock (tests/run_suite.py).
 test: $(STAMP) netns-tools lint
-	$(PY) -m pytest -n 2 -m "not realtime"
-	$(PY) -m pytest -m realtime
+	$(PY) tests/run_suite.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check --quiet .
