@@ -91,6 +91,12 @@ class Subscription:
         except queue.Empty:
             return None
 
+    def get_nowait(self):
+        try:
+            return self.queue.get_nowait()
+        except queue.Empty:
+            return None
+
     def __enter__(self) -> "Subscription":
         return self
 

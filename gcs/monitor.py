@@ -4,7 +4,10 @@ the flight controller's heartbeat (armed, mode, failsafe) and position, and the 
 
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
+import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Annotated, Optional
@@ -120,41 +123,53 @@ def monitor(
         if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
             raise UserError(f"--duration-s must be a positive number, got {duration_s}")
     plain = console if console.is_terminal else Console(width=PLAIN_WIDTH)
-    try:
-        with swarm_link(manifest, drone, id, tlog, signing_key, require_all=False) as (link, chosen), \
-                link.subscribe(None, COMP_AUTOPILOT, "LOCAL_POSITION_NED") as sub:
-            positions: dict[int, tuple[float, object]] = {}
+    with _ctrl_c() as stop, swarm_link(manifest, drone, id, tlog, signing_key, require_all=False) as (link, chosen), \
+            link.subscribe(None, COMP_AUTOPILOT, "LOCAL_POSITION_NED") as sub:
+        positions: dict[int, tuple[float, object]] = {}
 
-            def current() -> Table:
-                _drain(sub, positions)
-                return table(rows(link.seen, positions, chosen, time.time()))
+        def current() -> Table:
+            _drain(sub, positions)
+            return table(rows(link.seen, positions, chosen, time.time()))
 
-            if once:
-                time.sleep(ONCE_LISTEN_S)
+        if once:
+            stop.wait(ONCE_LISTEN_S)
+            plain.print(current())
+        elif not console.is_terminal:
+            for _ in _ticks(1.0 / rate_hz, duration_s, stop):
                 plain.print(current())
-            elif not console.is_terminal:
-                for _ in _ticks(1.0 / rate_hz, duration_s):
-                    plain.print(current())
-            else:
-                with Live(current(), console=console, screen=False, refresh_per_second=rate_hz) as live:
-                    for _ in _ticks(1.0 / rate_hz, duration_s):
-                        live.update(current())
-    except KeyboardInterrupt:
-        pass
+        else:
+            with Live(current(), console=console, screen=False, refresh_per_second=rate_hz) as live:
+                for _ in _ticks(1.0 / rate_hz, duration_s, stop):
+                    live.update(current())
+
+
+@contextlib.contextmanager
+def _ctrl_c() -> Iterator[threading.Event]:
+    """Ctrl-C (SIGINT) sets the event the monitor's loop waits on, so it stops between two tables
+    and closes its links. (A KeyboardInterrupt could land anywhere, inside a lock the link's reader
+    thread needs too, and hang the exit.)"""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _drain(sub: Subscription, positions: dict[int, tuple[float, object]]) -> None:
     """Keep the last LOCAL_POSITION_NED per drone."""
-    while (msg := sub.get(0.0)) is not None:
+    while (msg := sub.get_nowait()) is not None:
         positions[msg.get_srcSystem()] = (time.time(), msg)
 
 
-def _ticks(period_s: float, duration_s: float | None) -> Iterator[None]:
-    """Once now, then every period_s until duration_s has passed (forever without one)."""
+def _ticks(period_s: float, duration_s: float | None, stop: threading.Event) -> Iterator[None]:
+    """Once now, then every period_s until duration_s has passed (forever without one) or stop is set."""
     end = math.inf if duration_s is None else time.monotonic() + duration_s
     while True:
         yield
         left = end - time.monotonic()
-        if left <= 0:
+        if left <= 0 or stop.wait(min(period_s, left)):
             return
-        time.sleep(min(period_s, left))

@@ -491,7 +491,7 @@ def test_systemd_unit(tmp_path):
     text = UNIT.read_text()
     for line in ("Restart=on-failure", "User=triswarm", "NoNewPrivileges=yes", "ProtectSystem=strict",
                  "ReadWritePaths=/var/lib/triswarm", "PrivateTmp=yes", "SupplementaryGroups=dialout",
-                 "StandardError=journal",
+                 "StandardError=journal", "Nice=-10", "CPUWeight=1000",
                  "ExecStart=/opt/triswarm/current/bin/triswarm-companion --config /opt/triswarm/current/companion.toml"):
         assert re.search(rf"^{re.escape(line)}$", text, re.MULTILINE), line
     tool = shutil.which("systemd-analyze")
