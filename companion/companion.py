@@ -51,7 +51,7 @@ from triswarm.protocol.agent import Reference, no_leader, pinned_input, protocol
 from triswarm.protocol.codec import AgentStatus, plan_id
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.airframe import TABLE_1, ParameterError
-from triswarm.protocol.formation import (Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, Shifted,
+from triswarm.protocol.formation import (Formation, LeaderMove, QuinticTransfer, RelativeTo, Rejoin, Row, Shifted,
                                          rejoin_duration)
 from triswarm.protocol.graph import Topology
 from triswarm.protocol.mavlink import (COMP_ONBOARD, CustomMode, attitude_to_paper, encode_actuators, mode_name,
@@ -418,7 +418,7 @@ class Companion:
         self.plan = plan
         self._plan_in_force()
         self.bus.switch_plan(pid)
-        self._flying = self.formation
+        self._flying = self._mine(self.formation)
         self.statustext(f"companion {self.agent}: plan {plan.name} {pid:08x} in force")
         if self.phase == Phase.FLYING:
             self._rejoin(t_plan, self._tracking)
@@ -772,8 +772,7 @@ class Companion:
         m = self.mission
         m.phase = "flying"
         self.store.save(m)
-        start = np.tile(x[9:12], (self.plan.n_agents, 1))
-        self._flying = self._tracking = self.plan.entry_formation(start, t0_s, self.formation)
+        self._flying = self._tracking = self.plan.entry_formation(x[None, 9:12], t0_s, self._mine(self.formation))
         self._set_phase(Phase.FLYING, "")
 
     async def _resume(self) -> None:
@@ -788,19 +787,23 @@ class Companion:
         x = self._current_state()
         self.ctrl.reset(x[None, :])
         t_plan = self._plan_time(self._last_sample)
-        self._flying = self.formation
+        self._flying = self._mine(self.formation)
         self._hold = self._braking(t_plan + self.ctrl.lead_s, self.ctrl.rfl.phi_r(x[None, :])[0])
         self._rejoin(t_plan, RelativeTo(self._hold, self.leader))
 
     def _braking(self, t: float, x: np.ndarray) -> QuinticTransfer:
         """From x_r = [lambda_dot, eta_dot, eta, lambda] at plan time t to rest at its stopping
-        point, level, for every row (absolute, local frame)."""
+        point, level (absolute, local frame; one agent, as ``_mine``)."""
         p0, v0, eta0, eta_dot0 = x[9:12], x[0:3], x[6:9], x[3:6]
         T = max(2.0, float(np.linalg.norm(v0)) / 2.0)
-        n = self.plan.n_agents
-        tile = lambda a: np.tile(np.asarray(a, dtype=float), (n, 1))  # noqa: E731
-        return QuinticTransfer(tile(p0), tile(v0), tile(p0 + v0 * T / 2.0), tile(eta0), tile(eta_dot0),
-                               tile([0.0, 0.0, eta0[2]]), t, T)
+        row = lambda a: np.asarray(a, dtype=float).reshape(1, 3)  # noqa: E731
+        return QuinticTransfer(row(p0), row(v0), row(p0 + v0 * T / 2.0), row(eta0), row(eta_dot0),
+                               row([0.0, 0.0, eta0[2]]), t, T)
+
+    def _mine(self, formation: Formation) -> Row:
+        """This agent's row of a swarm's formation: the references it flies (entry, rejoin, hold)
+        are one-agent formations."""
+        return Row(formation, self.agent - 1)
 
     def _rejoin(self, t_plan: float, source: Formation) -> None:
         """Into the formation from ``source`` (the braking/held trajectory, or the formation of the
@@ -808,9 +811,9 @@ class Companion:
         and its distance to the formation decays over REJOIN_S seconds, longer if the way is long
         (peak acceleration REJOIN_ACCEL_M_S2)."""
         t0 = t_plan + self.ctrl.lead_s  # references are evaluated at the time the estimates refer to
-        target = self._flying or self.formation  # the entry, if it is not over
+        target = self._flying or self._mine(self.formation)  # the entry, if it is not over
         rejoin = Rejoin(source, target, t0, self.values["REJOIN_S"])
-        dp, dv = (float(np.linalg.norm(e[self.agent - 1])) for e in rejoin.initial_error)
+        dp, dv = (float(np.linalg.norm(e[0])) for e in rejoin.initial_error)
         duration_s = rejoin_duration(dp, dv, self.values["REJOIN_ACCEL"], self.values["REJOIN_S"])
         if duration_s > rejoin.duration_s:
             rejoin = Rejoin(source, target, t0, duration_s)
@@ -896,14 +899,13 @@ class Companion:
         xhat = self.ctrl.observe(y)
         t_plan = self._plan_time(s)
         lead, dt = self.ctrl.lead_s, self.ctrl.dt_s
-        i = self.agent - 1
         self._t_p = t_plan + lead
         if self._switch is not None and t_plan + self.mission.start_unix_s >= self._switch[2]:
             self._switch_plan(t_plan)
         if self.phase == Phase.HOLDING:
             self._hold_step(s, xhat, t_plan)
             return
-        ref = reference_at(self._design, self._tracking.offsets, self._leader_state, t_plan, lead, dt, rows=[i])
+        ref = reference_at(self._design, self._tracking.offsets, self._leader_state, t_plan, lead, dt)
         xi = xhat - ref.h
         self.bus.publish_estimate(xi[0], ref.t_p, AgentStatus.FLYING)
         topo = self.plan.schedule.at(ref.t_p)
@@ -994,9 +996,7 @@ class Companion:
     def _hold_step(self, s: Sample, xhat: np.ndarray, t_plan: float) -> None:
         """Holding: pinned to its own absolute reference (the braking trajectory), no neighbours;
         back to the formation as soon as a path from the leader returns."""
-        i = self.agent - 1
-        ref = reference_at(self._design, self._hold.offsets, no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s,
-                           rows=[i])
+        ref = reference_at(self._design, self._hold.offsets, no_leader, t_plan, self.ctrl.lead_s, self.ctrl.dt_s)
         self.bus.publish_estimate(xhat[0] - ref.h[0], ref.t_p, AgentStatus.HOLDING)
         if self._has_path(self.plan.schedule.at(ref.t_p), self._presence()):
             self._rejoin(t_plan, RelativeTo(self._hold, self.leader))

@@ -219,14 +219,15 @@ class Plan:
         return actuator_demand(self.rfl, self.leader, self.formation, times_s)
 
     def entry_formation(self, start_position_m: np.ndarray, t0_s: float = 0.0, target: Formation | None = None) -> Formation:
-        """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0:
+        """The formation as flown from rest at ``start_position_m`` (N, 3, earth frame) from t0
+        (or one agent's part of it: its start (1, 3) and its ``Row`` of the formation as ``target``):
         climb ``entry.climb_m`` at level attitude, then blend into ``target`` (default: the plan's
         formation). Offsets are
         relative to the leader's position at t0 (the leader is static during entry in every plan)."""
         x0, _ = self.leader_state(t0_s)
         start_offset = np.asarray(start_position_m, dtype=float) - x0[9:12]
         lifted = start_offset + np.array([0.0, 0.0, self.entry.climb_m])
-        level = np.zeros((self.n_agents, 3))
+        level = np.zeros_like(start_offset)
         climb = EntryBlend(ConstantFormation(lifted, level), start_offset, level, t0_s, self.entry.climb_s)
         return Blend(climb, target or self.formation, t0_s + self.entry.climb_s, self.entry.blend_s)
 

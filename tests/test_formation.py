@@ -5,7 +5,8 @@ import pytest
 
 from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.formation import (Blend, ConstantFormation, EntryBlend, KeyframeFormation, QuinticTransfer,
-                                         RelativeTo, Rejoin, RotatingPolygon, quintic_blend, rejoin_duration)
+                                         RelativeTo, Rejoin, RotatingPolygon, Row, quintic_blend, rejoin_duration)
+from triswarm.protocol.plan import plan_from_dict
 
 
 def assert_exact_derivative(formation, times, h=1e-5, tol=1e-6):
@@ -169,3 +170,34 @@ def test_offsets_fast_paths_equal_the_kinematics(paper_plan):
             h, h_dot = f.offsets(t)
             k_h, k_h_dot = Formation.offsets(f, t)  # the base class: kinematics(t).offsets()
             assert np.allclose(h, k_h, rtol=0, atol=1e-12) and np.allclose(h_dot, k_h_dot, rtol=0, atol=1e-12), t
+
+
+@pytest.mark.parametrize("n", [6, 24])
+def test_one_agents_row_flies_the_same_reference_as_the_whole_swarm(paper_spec, n):
+    """A companion builds its entry and rejoin on its own Row of the formation: every agent's
+    reference is its row of the references built for the whole swarm, through the climb, the blend
+    and a rejoin from a braking start."""
+    plan = plan_from_dict(paper_spec).with_agents(n) if n != 6 else plan_from_dict(paper_spec)
+    rng = np.random.default_rng(1)
+    start = np.column_stack([rng.uniform(-20, 20, (n, 2)), np.zeros(n)])
+    t0 = 3.0
+    whole = plan.entry_formation(start, t0)
+    times = np.linspace(t0 - 1.0, t0 + plan.entry.climb_s + plan.entry.blend_s + 2.0, 37)
+    brake_whole = QuinticTransfer(start + 1.0, np.ones((n, 3)), start + 3.0, np.zeros((n, 3)), np.zeros((n, 3)),
+                                  np.zeros((n, 3)), t0, 4.0)
+    rejoin_whole = Rejoin(brake_whole, plan.formation, t0, 6.0)
+    for i in (0, n // 2, n - 1):
+        mine = plan.entry_formation(start[i:i + 1], t0, Row(plan.formation, i))
+        brake_mine = QuinticTransfer(*(a[i:i + 1] for a in (brake_whole.p0, brake_whole.p_dot0, brake_whole.p1,
+                                                             brake_whole.eta0, brake_whole.eta_dot0, brake_whole.eta1)),
+                                     t0, 4.0)
+        rejoin_mine = Rejoin(brake_mine, Row(plan.formation, i), t0, 6.0)
+        assert mine.n_agents == rejoin_mine.n_agents == 1
+        for t in times:
+            for one, all_ in ((mine, whole), (rejoin_mine, rejoin_whole)):
+                h, h_dot = one.offsets(t)
+                H, H_dot = all_.offsets(t)
+                np.testing.assert_allclose(h, H[i:i + 1], rtol=0, atol=1e-12)
+                np.testing.assert_allclose(h_dot, H_dot[i:i + 1], rtol=0, atol=1e-12)
+            k, K = Row(plan.formation, i).kinematics(t), plan.formation.kinematics(t)
+            np.testing.assert_allclose(k.p, K.p[i:i + 1], rtol=0, atol=0)
