@@ -19,6 +19,7 @@ the loop. Liveliness and status change rarely: ring channels the loop drains at 
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import math
 import os
@@ -91,6 +92,20 @@ class Neighbour:
     @property
     def heard(self) -> bool:
         return self.xi is not None
+
+
+@functools.lru_cache(maxsize=1024)
+def _parse_status(key: str, data: bytes) -> tuple[int, AgentStatus, object] | None:
+    """(agent, status, plan) of a status sample, None if it is not a valid one for its key. Kept
+    for the recent samples: every agent of a process hears every status, and parses it once."""
+    try:
+        msg = json.loads(data)
+        agent, status = int(msg["agent"]), AgentStatus[msg["status"]]
+    except (ValueError, KeyError, TypeError):
+        return None
+    if agent_of_key(key) != agent:
+        return None
+    return agent, status, msg.get("plan")
 
 
 @dataclass
@@ -291,15 +306,12 @@ class Bus:
         self.counters["estimates"] += 1
 
     def _status(self, key: str, data: bytes) -> None:
-        try:
-            msg = json.loads(data)
-            agent, status = int(msg["agent"]), AgentStatus[msg["status"]]
-            if agent_of_key(key) != agent or not 1 <= agent <= self.n_agents:
-                raise ValueError
-        except (ValueError, KeyError, TypeError):
+        parsed = _parse_status(key, data)
+        if parsed is None or not 1 <= parsed[0] <= self.n_agents:
             self.counters["drop_bad_status"] += 1
             return
-        if msg.get("plan") in (self.plan_id, self.previous_plan_id) and self.statuses.get(agent) != status:
+        agent, status, plan = parsed
+        if plan in (self.plan_id, self.previous_plan_id) and self.statuses.get(agent) != status:
             self.statuses[agent] = status
             self.changes += 1
 
