@@ -23,10 +23,11 @@ def _below_ephemeral() -> tuple[int, int]:
     return max(1024, low - 20000), low
 
 
-def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[int]:
+def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: frozenset[int] = frozenset()) -> list[int]:
     """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count), picked below the
-    kernel's ephemeral range. (For the companions' listening ports, which their peers must know
-    before they start; everything that can bind port 0 does.)"""
+    kernel's ephemeral range, none of them in ``exclude`` (ports picked earlier and not bound yet).
+    (For the companions' listening ports, which their peers must know before they start;
+    everything that can bind port 0 does.)"""
     import random
 
     def free(port: int) -> bool:
@@ -48,7 +49,7 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200) -> list[i
             ports = list(range(base + 1, base + count + 1))
         else:
             ports = [rng.randrange(lo, hi) for _ in range(count)]
-        if len(set(ports)) == count and all(free(p) for p in ports):
+        if len(set(ports)) == count and exclude.isdisjoint(ports) and all(free(p) for p in ports):
             return ports
     raise RuntimeError("no free ports found")
 
@@ -107,8 +108,9 @@ class Stack:
                 raise RuntimeError(f"sitl did not start (see {self.workdir / 'logs' / 'sitl.log'})")
             time.sleep(0.05)
         self.manifest = json.loads(manifest_path.read_text())
-        self.gcs_ports = free_ports(self.n)
-        self.zenoh_base = free_ports(self.n, contiguous=True)[0] - 1
+        zenoh_ports = free_ports(self.n, contiguous=True)
+        self.zenoh_base = zenoh_ports[0] - 1
+        self.gcs_ports = free_ports(self.n, exclude=frozenset(zenoh_ports))  # (a companion binds both)
         clock = self.manifest["clock"]
         self.start_at = (clock["boot_unix_s"] if clock["lockstep"] else time.time()) + self.start_delay_s
         rest = [i for i in range(1, self.n + 1) if i not in self.alone]
