@@ -43,15 +43,21 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: 
 
     rng = random.Random()
     lo, hi = _below_ephemeral()
-    for _ in range(tries):
-        if contiguous:
+    if contiguous:
+        for _ in range(tries):
             base = rng.randrange(lo, hi - count - 1)
             ports = list(range(base + 1, base + count + 1))
-        else:
-            ports = [rng.randrange(lo, hi) for _ in range(count)]
-        if len(set(ports)) == count and exclude.isdisjoint(ports) and all(free(p) for p in ports):
-            return ports
-    raise RuntimeError("no free ports found")
+            if exclude.isdisjoint(ports) and all(free(p) for p in ports):
+                return ports
+    else:
+        picked: dict[int, None] = {}
+        for _ in range(tries * count):  # one port at a time: a taken one costs a pick, not the set
+            port = rng.randrange(lo, hi)
+            if port not in exclude and port not in picked and free(port):
+                picked[port] = None
+                if len(picked) == count:
+                    return list(picked)
+    raise RuntimeError(f"no {count} free ports found below the ephemeral range ({lo}-{hi - 1})")
 
 
 @dataclass
