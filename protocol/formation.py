@@ -69,6 +69,19 @@ def _as_agents(name: str, value, n: int) -> np.ndarray:
     return arr
 
 
+
+def _recently(recent: OrderedDict, t_s: float, offsets) -> tuple[np.ndarray, np.ndarray]:
+    """``offsets(t_s)``, kept for the last few instants asked (read-only arrays): the agents of one
+    companion process fly their rows of one formation and ask for the same instants."""
+    found = recent.get(t_s)
+    if found is None:
+        found = recent[t_s] = offsets(t_s)
+        for arr in found:
+            arr.setflags(write=False)
+        if len(recent) > 8:
+            recent.popitem(last=False)
+    return found
+
 @dataclass(frozen=True)
 class ConstantFormation(Formation):
     """Fixed position [m] and attitude [rad] offsets per agent."""
@@ -153,15 +166,8 @@ class RotatingPolygon(Formation):
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """``kinematics(t).offsets()`` written straight into h and h_dot (the control loop's hot
-        path). The last few instants are kept, read-only: the agents of one companion process ask
-        for the same ones."""
-        recent = self._recent
-        found = recent.get(t_s)
-        if found is None:
-            found = recent[t_s] = self._offsets(t_s)
-            if len(recent) > 8:
-                recent.popitem(last=False)
-        return found
+        path), for the last few instants kept (``_recently``)."""
+        return _recently(self._recent, t_s, self._offsets)
 
     def _offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s
@@ -174,8 +180,6 @@ class RotatingPolygon(Formation):
         h[:, 9], h[:, 10], h[:, 11] = R * s, R * c, self.altitude_m  # p
         h_dot[:, 0], h_dot[:, 1] = -R * w * w * s, -R * w * w * c    # p_ddot
         h_dot[:, 9:11] = h[:, 0:2]                              # p_dot
-        h.setflags(write=False)
-        h_dot.setflags(write=False)
         return h, h_dot
 
 
@@ -211,6 +215,10 @@ class KeyframeFormation(Formation):
 
         object.__setattr__(self, "_p", CubicSpline(t, p, axis=0, bc_type="clamped"))
         object.__setattr__(self, "_eta", CubicSpline(t, a, axis=0, bc_type="clamped"))
+        object.__setattr__(self, "_recent", OrderedDict())
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        return _recently(self._recent, t_s, lambda t: self.kinematics(t).offsets())
 
     @property
     def n_agents(self) -> int:
@@ -524,8 +532,8 @@ class LeaderMove(Formation):
 class Row(Formation):
     """Agent ``index``'s row (from 0) of ``formation``, as a one-agent formation. An agent flies its
     own part of the swarm's formation: its entry, hold and rejoin built on this row cost the same
-    at 6 or 1000 drones, and ``formation`` (shared by the agents of one process) is evaluated once
-    per instant for all of them."""
+    at 6 or 1000 drones, and ``formation`` (shared by the agents of one process; the polygon and
+    keyframe formations keep their recent instants) is evaluated once per instant for all of them."""
 
     formation: Formation
     index: int
@@ -557,3 +565,6 @@ class Shifted(Formation):
 
     def kinematics(self, t_s: float) -> Kinematics:
         return self.base.kinematics(t_s - self.shift_s)
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        return self.base.offsets(t_s - self.shift_s)

@@ -5,7 +5,8 @@ import pytest
 
 from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.formation import (Blend, ConstantFormation, EntryBlend, KeyframeFormation, QuinticTransfer,
-                                         RelativeTo, Rejoin, RotatingPolygon, Row, quintic_blend, rejoin_duration)
+                                         RelativeTo, Rejoin, RotatingPolygon, Row, Shifted, quintic_blend,
+                                         rejoin_duration)
 from triswarm.protocol.plan import plan_from_dict
 
 
@@ -201,3 +202,16 @@ def test_one_agents_row_flies_the_same_reference_as_the_whole_swarm(paper_spec, 
                 np.testing.assert_allclose(h_dot, H_dot[i:i + 1], rtol=0, atol=1e-12)
             k, K = Row(plan.formation, i).kinematics(t), plan.formation.kinematics(t)
             np.testing.assert_allclose(k.p, K.p[i:i + 1], rtol=0, atol=0)
+
+
+def test_keyframe_offsets_are_kept_for_the_agents_of_a_process():
+    """The agents of one companion process fly rows of one formation at the same instants: the
+    offsets of an instant are computed once, read-only, and each row is that row."""
+    formation = keyframes()
+    for t in (1.0, 5.0, 9.5, 16.0):
+        h, h_dot = formation.offsets(t)
+        assert formation.offsets(t)[0] is h and not h.flags.writeable and not h_dot.flags.writeable
+        np.testing.assert_array_equal(h, formation.kinematics(t).offsets()[0])
+        assert Shifted(formation, 2.5).offsets(t + 2.5)[0] is h  # (a plan put in force in flight)
+        for i in range(formation.n_agents):
+            np.testing.assert_array_equal(Row(formation, i).offsets(t)[1], h_dot[i:i + 1])
