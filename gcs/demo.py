@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -80,7 +81,7 @@ def demo(
         _step("arm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0]))
         _step("takeoff", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0] + [float("nan")] * 4))
         _wait("hover after takeoff", lambda: all(link.autopilot(i).heartbeat.custom_mode == CustomMode.HOLD for i in ids), 30.0)
-        _wait("the flight controllers' clock", lambda: link.fc_now() == link.fc_now(), 30.0)
+        _wait("the flight controllers' clock", lambda: not math.isnan(link.fc_now()), 30.0)
         start = link.fc_now() + 3.0
         _step("plan start", start_all(link, ids, pid, start))
         (run / "run.json").write_text(json.dumps({"start_unix_s": start, "plan_id": pid, "drones": n,

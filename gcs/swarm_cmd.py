@@ -142,9 +142,11 @@ def flight_clock(link: GroundLink, wait_s: float = 2.0) -> float:
     """The flight controllers' clock (a simulator's in lockstep), as Unix time; the wall clock if
     none has told its time within ``wait_s`` (they send SYSTEM_TIME once a second)."""
     deadline = time.monotonic() + wait_s
-    while not (now := link.fc_now()) == now and time.monotonic() < deadline:
+    now = link.fc_now()  # (NaN until one has told its time)
+    while math.isnan(now) and time.monotonic() < deadline:
         time.sleep(0.05)
-    return now if now == now else time.time()
+        now = link.fc_now()
+    return time.time() if math.isnan(now) else now
 
 
 def upload_all(link: GroundLink, chosen: list[int], items) -> dict[int, tuple[bool, str]]:
