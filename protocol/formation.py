@@ -69,7 +69,6 @@ def _as_agents(name: str, value, n: int) -> np.ndarray:
     return arr
 
 
-
 def _recently(recent: OrderedDict, t_s: float, offsets) -> tuple[np.ndarray, np.ndarray]:
     """``offsets(t_s)``, kept for the last few instants asked (read-only arrays): the agents of one
     companion process fly their rows of one formation and ask for the same instants."""
@@ -81,6 +80,7 @@ def _recently(recent: OrderedDict, t_s: float, offsets) -> tuple[np.ndarray, np.
         if len(recent) > 8:
             recent.popitem(last=False)
     return found
+
 
 @dataclass(frozen=True)
 class ConstantFormation(Formation):
