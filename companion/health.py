@@ -9,6 +9,9 @@ from collections import Counter, defaultdict, deque
 import numpy as np
 
 
+BIN_BATCH = 256  # samples binned together
+
+
 class Window:
     """The last ``n`` samples of a quantity (for the 1 Hz report), and a log histogram of every
     sample (for whole-run percentiles, 2 % resolution, constant memory however long the flight)."""
@@ -19,18 +22,38 @@ class Window:
     def __init__(self, n: int = 400, keep_all: bool = True) -> None:
         self.recent: deque[float] = deque(maxlen=n)
         self.bins: Counter[int] | None = Counter() if keep_all else None
+        self._unbinned: list[float] = []  # added since the last binning (binned in bulk: a tick is hot)
         self.count = 0
 
     def add(self, value: float) -> None:
         self.recent.append(value)
         if self.bins is not None:
             self.count += 1
-            self.bins[_bin(value, self.FLOOR, self.RATIO) if value > self.FLOOR else 0] += 1
+            self._unbinned.append(value)
+            if len(self._unbinned) >= BIN_BATCH:
+                self._bin_pending()
+
+    def _bin_pending(self) -> None:
+        if not self._unbinned:
+            return
+        values = np.asarray(self._unbinned, dtype=float)
+        self._unbinned.clear()
+        above = values > self.FLOOR
+        k = np.zeros(values.size, dtype=np.int64)
+        k[above] = 1 + (np.log(values[above] / self.FLOOR) / math.log(self.RATIO)).astype(np.int64)
+        self.bins.update(dict(zip(*(a.tolist() for a in np.unique(k, return_counts=True)))))
+
+    def merge(self, other: "Window") -> None:
+        """Take in every sample of ``other`` (whole-run percentiles of several windows)."""
+        other._bin_pending()
+        self.bins.update(other.bins)
+        self.count += other.count
 
     def percentile(self, q: float, recent: bool = True) -> float:
         """The q-th percentile of the recent samples, or of all of them (to within 2 %)."""
         if recent or self.bins is None:
             return float(np.percentile(np.fromiter(self.recent, float), q)) if self.recent else math.nan
+        self._bin_pending()
         if not self.count:
             return math.nan
         rank = q / 100.0 * self.count
@@ -40,10 +63,6 @@ class Window:
             if seen >= rank:
                 return self.FLOOR * self.RATIO ** (k - 0.5) if k else self.FLOOR
         return math.nan
-
-
-def _bin(value: float, floor: float, ratio: float) -> int:
-    return 1 + int(math.log(value / floor) / math.log(ratio))
 
 
 class LoopHealth:
@@ -119,8 +138,7 @@ class LoopHealth:
         """Whole-run numbers (for benchmarks)."""
         ages = Window(n=1)
         for w in self.neighbour_age.values():
-            ages.bins.update(w.bins)
-            ages.count += w.count
+            ages.merge(w)
         return {
             "ticks": self.ticks,
             "deadline_misses": self.deadline_misses,
