@@ -57,7 +57,7 @@ def demo(
     out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Fly on simulated time (sitl up --lockstep): as fast as this machine "
                                                 "allows, the same however busy it is.")] = False,
-    agents_per_process: Annotated[int, typer.Option(help="Agents per companion process (0: one process per core).")] = 0,
+    agents_per_process: Annotated[int, typer.Option(help="Agents per companion process (0: all in one).")] = 0,
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():

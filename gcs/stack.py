@@ -4,7 +4,6 @@ real processes on loopback, and stop every one of them."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -80,8 +79,7 @@ class Stack:
     companions: bool = True
     """Start the companions (False: the SITL alone, its ports and the Zenoh ports chosen)."""
     agents_per_process: int = 1
-    """Companion processes fly this many agents each (0: as many processes as this machine has cores,
-    the agents shared out evenly; ``process_layout``)."""
+    """Companion processes fly this many agents each (0: all in one process, one Zenoh session)."""
     alone: tuple[int, ...] = ()
     """Agents that fly in a process of their own whatever ``agents_per_process`` says (a test that
     kills a companion kills one agent)."""
@@ -122,7 +120,8 @@ class Stack:
         clock = self.manifest["clock"]
         self.start_at = (clock["boot_unix_s"] if clock["lockstep"] else time.time()) + self.start_delay_s
         rest = [i for i in range(1, self.n + 1) if i not in self.alone]
-        groups = [[i] for i in self.alone] + process_layout(rest, self.agents_per_process)
+        k = len(rest) if self.agents_per_process == 0 else self.agents_per_process
+        groups = [[i] for i in self.alone] + [rest[a:a + k] for a in range(0, len(rest), max(k, 1))]
         self.process_of = {i: (f"companion-{g[0]}" if len(g) == 1 else f"companions-{g[0]}-{g[-1]}")
                            for g in groups for i in g}
         self.groups = {self.process_of[g[0]]: g for g in groups}
@@ -180,23 +179,6 @@ class Stack:
         if name.startswith("companion-"):
             name = self.process_of[int(name.removeprefix("companion-"))]
         return (self.workdir / "logs" / f"{name}.log").read_text()
-
-
-def process_layout(agents: list[int], per_process: int, cores: int | None = None) -> list[list[int]]:
-    """The agents of each companion process, neighbours in numbering together: ``per_process`` each,
-    or with 0 one process per core (``os.cpu_count``) with the agents shared out evenly. An agent's
-    tick is single-threaded Python, so a process flies on one core at most: in lockstep, where the
-    clock waits for the slowest process, one process per core is the fastest layout (``make bench``)."""
-    if not agents:
-        return []
-    if per_process <= 0:
-        parts = max(1, min(len(agents), cores or os.cpu_count() or 1))
-        size, extra = divmod(len(agents), parts)
-        bounds = [0]
-        for p in range(parts):
-            bounds.append(bounds[-1] + size + (p < extra))
-        return [agents[a:b] for a, b in zip(bounds, bounds[1:])]
-    return [agents[a:a + per_process] for a in range(0, len(agents), per_process)]
 
 
 def stop_in_turn(groups: list[list[subprocess.Popen]], timeout_s: float = 15.0, sig: int = signal.SIGTERM) -> None:

@@ -79,7 +79,7 @@ def main() -> None:
     ap.add_argument("--plan", type=Path, default=ROOT / "examples" / "paper-hexagon.toml")
     ap.add_argument("--sizes", default="6", help="swarm sizes, comma-separated (the plan resized)")
     ap.add_argument("--seconds", type=float, default=50.0, help="plan time flown [s]")
-    ap.add_argument("--agents-per-process", type=int, default=0, help="agents per companion process (0: one process per core)")
+    ap.add_argument("--agents-per-process", type=int, default=0, help="agents per companion process (0: all in one)")
     ap.add_argument("--judge-from", type=float, default=25.0, help="the settled window starts here [s of plan time]")
     a = ap.parse_args()
     for n in [int(x) for x in a.sizes.split(",")]:

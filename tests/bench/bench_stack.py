@@ -84,7 +84,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=30.0, help="seconds of flight measured per run")
     ap.add_argument("--sizes", default="2,4,6,8,12,18,24", help="swarm sizes tried, in order, for the largest real-time swarm")
     ap.add_argument("--rate-hz", type=float, default=200.0, help="control rate of every companion (the targets are for 200 Hz)")
-    ap.add_argument("--agents-per-process", type=int, default=1, help="agents per companion process (0: one process per core)")
+    ap.add_argument("--agents-per-process", type=int, default=1, help="agents per companion process (0: all in one)")
     args = ap.parse_args()
     rate, per = args.rate_hz, args.agents_per_process
     how = "one agent per companion process" if per == 1 else \
