@@ -32,7 +32,8 @@ lint: $(STAMP)
 	$(PY) -m ruff check --quiet .
 
 # The lossy-network test impairs Zenoh inside a network namespace with iptables (Debian package), and
-# the deploy test runs its own OpenSSH server (openssh-server, which brings ssh and scp).
+# the deploy test runs its own OpenSSH server (openssh-server, which brings ssh and scp) and checks the
+# systemd unit with systemd-analyze (systemd).
 # As root, install them when missing; otherwise those tests say what they need.
 netns-tools:
 	@{ command -v iptables && command -v ip; } >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
@@ -41,6 +42,9 @@ netns-tools:
 	@{ [ -x /usr/sbin/sshd ] && command -v ssh && command -v scp; } >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
 		{ echo "installing openssh-server (apt-get) for the deploy tests"; \
 		  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq openssh-server >/dev/null; }
+	@command -v systemd-analyze >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 || \
+		{ echo "installing systemd (apt-get) for systemd-analyze in the deploy tests"; \
+		  apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd >/dev/null; }
 
 bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py

@@ -35,7 +35,6 @@
 #   --no-deps               install no dependencies at all: venv/ must already provide them. For images
 #                           made with the dependencies, and for the tests, whose venv/ is made in advance
 #                           with a .pth file pointing at the development environment (tests only).
-# For tests only: TRISWARM_BOOTSTRAP_FAIL_AT=venv|deps|release|switch|service makes that step fail.
 
 set -eu
 
@@ -44,11 +43,6 @@ UNIT_DIR=/etc/systemd/system
 
 say() { printf 'bootstrap: %s\n' "$*"; }
 die() { printf 'bootstrap: error: %s\n' "$*" >&2; exit 1; }
-test_hook() {
-    if [ "${TRISWARM_BOOTSTRAP_FAIL_AT:-}" = "$1" ]; then
-        die "step '$1' failed on purpose (TRISWARM_BOOTSTRAP_FAIL_AT=$1, a test hook)"
-    fi
-}
 
 usage() { sed -n '2,/^$/p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
 
@@ -119,7 +113,6 @@ service_note() {
 }
 
 restart_service() {  # install the current release's unit, restart, and make sure it keeps running
-    test_hook service
     if ! id -u "$SERVICE_USER" >/dev/null 2>&1; then
         say "creating the service user $SERVICE_USER"
         useradd --system --user-group --home-dir /var/lib/triswarm --no-create-home \
@@ -194,7 +187,7 @@ undo_switch() {  # undo_switch OLD_CURRENT OLD_PREVIOUS CREATED(1: delete releas
     if [ -n "$1" ]; then
         say "rolled back to $1"
         if manage_service; then
-            (TRISWARM_BOOTSTRAP_FAIL_AT= && restart_service) ||
+            restart_service ||
                 say "warning: the previous release's service did not start either"
         fi
     else
@@ -224,7 +217,6 @@ on_exit() {
 }
 
 make_venv() {
-    test_hook venv
     if [ -x "$PYBIN" ] && "$PYBIN" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
         say "venv: reusing $VENV"
         return
@@ -243,7 +235,6 @@ make_venv() {
 }
 
 install_deps() {
-    test_hook deps
     if [ "$NO_DEPS" = 1 ]; then
         say "dependencies: not installed (--no-deps): $VENV must provide them"
         return
@@ -263,7 +254,6 @@ EOF
 }
 
 build_release() {  # in releases/RELEASE itself (the paths compiled into the .pyc files stay true); complete
-    test_hook release   # once .complete is there
     dest=$ROOT/releases/$RELEASE
     CREATED=1
     mkdir -p "$dest/bin" "$dest/wheel"
@@ -335,7 +325,6 @@ do_install() {
     SWITCHED=1
     if [ -n "$OLD_CUR" ]; then set_link previous "$OLD_CUR"; fi
     set_link current "$RELEASE"
-    test_hook switch
     say "current = $RELEASE (previous = ${OLD_CUR:-none})"
     cp "$FROM/bootstrap.sh" "$ROOT/.bootstrap.sh.new" 2>/dev/null && mv -f "$ROOT/.bootstrap.sh.new" "$ROOT/bootstrap.sh" || true
 

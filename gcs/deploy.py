@@ -46,7 +46,6 @@ SSH_CONNECT_TIMEOUT_S = 10
 PROBE_TIMEOUT_S = 60
 BOOTSTRAP_TIMEOUT_S = 1800   # the first install builds the dependencies' environment
 CHECK_TIMEOUT_S = 90
-TEST_HOOK_ENV = "TRISWARM_BOOTSTRAP_FAIL_AT"   # tests only: passed on to bootstrap.sh
 
 
 class DeployError(ValueError):
@@ -487,10 +486,8 @@ def _bootstrap_install_cmd(t: Target, release: Release, staging: str) -> str:
         args.append("--system-site-packages")
     if t.no_deps:
         args.append("--no-deps")
-    hook = os.environ.get(TEST_HOOK_ENV)
-    env = f"{TEST_HOOK_ENV}={q(hook)} " if hook else ""
-    sudo = f"sudo -n {'--preserve-env=' + TEST_HOOK_ENV + ' ' if hook else ''}" if t.sudo else ""
-    return f"{env}{sudo}sh {q(staging + '/bootstrap.sh')} " + " ".join(q(a) for a in args)
+    sudo = "sudo -n " if t.sudo else ""
+    return f"{sudo}sh {q(staging + '/bootstrap.sh')} " + " ".join(q(a) for a in args)
 
 
 def plan_actions(t: Target, release: Release, current: str | None, previous: str | None, *, rollback: bool,

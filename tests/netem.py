@@ -14,17 +14,13 @@ from collections import Counter
 
 
 def need_netns(tools: tuple[str, ...] = ("ip", "iptables"), problem: str | None = None) -> None:
-    """Stop a test that needs network namespaces (and ``tools``) on a machine without them: a
-    failure under CI (``CI`` set, as CI services do), where a missing tool is a broken set-up
-    (``make test`` installs iproute2 and iptables when it runs as root), and a skip elsewhere."""
-    import pytest
+    """Stop a test that needs network namespaces (and ``tools``) on a machine without them
+    (``needs.missing``: a failure under CI, a skip elsewhere)."""
+    from .needs import missing
 
     problem = problem or NetNamespace.problem(tools)
-    if problem is None:
-        return
-    if os.environ.get("CI", "").lower() not in ("", "0", "false"):
-        pytest.fail(f"CI: {problem} (make test installs iproute2 and iptables when run as root)")
-    pytest.skip(problem)
+    if problem is not None:
+        missing(f"{problem} (make test installs iproute2 and iptables when run as root)")
 
 
 class NetNamespace:

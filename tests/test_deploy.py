@@ -1,9 +1,10 @@
-"""Deploying the companion (issue 6): `triswarm deploy` over a real OpenSSH server on loopback, the bootstrap
+"""Deploying the companion: `triswarm deploy` over a real OpenSSH server on loopback, the bootstrap
 script on the target, `triswarm-companion --config/--check`, and the systemd unit.
 
 The test starts Debian's /usr/sbin/sshd with a configuration, host key and user key of its own in tmp_path, on
 a free loopback port (as root it logs in as root). `make test` installs openssh-server (the Makefile's netns-tools
-target); otherwise, as root, the test installs it with apt-get, and skips with the reason when it cannot.
+target); otherwise, as root, the test installs it with apt-get; when it cannot, it skips with the reason (under
+CI it fails: ``needs.missing``).
 
 Test-only arrangement: installing numpy, scipy, numba and zenoh into a fresh environment takes minutes, so each
 target's <root>/venv is made in advance by the test, with a .pth file that puts this development environment's
@@ -33,6 +34,8 @@ from triswarm.companion.config import ConfigError, load_config, resolve_options,
 from triswarm.gcs import deploy as dp
 from triswarm.gcs.stack import stop_in_turn
 
+from .needs import missing
+
 REPO = Path(__file__).resolve().parents[1]
 SSHD = Path("/usr/sbin/sshd")
 UNIT = REPO / "deploy" / "systemd" / "triswarm-companion.service"
@@ -60,6 +63,24 @@ def _sshd_missing() -> str | None:
     return None if SSHD.exists() else f"apt-get install openssh-server failed: {r.stderr.strip()[-300:]}"
 
 
+MV_SHIM = """#!/bin/sh
+# The test's mv on the target: a real mv, but for the one move that switches <root>/current when the
+# test has asked for it to fail (a file <root>/.fail-the-switch, used up by the failure).
+for last in "$@"; do :; done
+case $last in
+    */current)
+        trigger="$(dirname "$last")/.fail-the-switch"
+        if [ -e "$trigger" ]; then rm -f "$trigger"; echo "mv: cannot move to $last: injected by the test" >&2; exit 1; fi ;;
+esac
+exec /usr/bin/mv "$@"
+"""
+
+
+def fail_the_switch(root: Path) -> None:
+    """The next deploy to ``root`` fails as it switches ``current`` to the new release (``MV_SHIM``)."""
+    (root / ".fail-the-switch").touch()
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -70,12 +91,16 @@ def _free_port() -> int:
 def sshd(tmp_path_factory):
     reason = _sshd_missing()
     if reason:
-        pytest.skip(reason)
+        missing(reason)
     d = tmp_path_factory.mktemp("sshd")
     for name in ("host_key", "user_key"):
         subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"triswarm-test-{name}", "-f", str(d / name)],
                        check=True, capture_output=True, timeout=30)
     (d / "authorized_keys").write_text((d / "user_key.pub").read_text())
+    shims = d / "shims"  # on the sessions' PATH: a failure injected on the target (``fail_the_switch``)
+    shims.mkdir()
+    (shims / "mv").write_text(MV_SHIM)
+    (shims / "mv").chmod(0o755)
     port = _free_port()
     (d / "sshd_config").write_text(f"""\
 Port {port}
@@ -91,6 +116,7 @@ StrictModes no
 UsePAM no
 Subsystem sftp /usr/lib/openssh/sftp-server
 LogLevel VERBOSE
+SetEnv PATH={shims}:/usr/local/bin:/usr/bin:/bin:/usr/local/sbin:/usr/sbin:/sbin
 """)
     if os.geteuid() == 0:
         Path("/run/sshd").mkdir(mode=0o755, exist_ok=True)   # sshd's privilege separation folder
@@ -125,7 +151,7 @@ def ssh_args(sshd) -> list[str]:
 
 
 def run_deploy(sshd, *args, env_extra=None, timeout=240):
-    env = {k: v for k, v in os.environ.items() if k != dp.TEST_HOOK_ENV}
+    env = dict(os.environ)
     env.update({"COLUMNS": "200", **(env_extra or {})})
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, "-m", "triswarm.gcs.deploy_cmd", *ssh_args(sshd), *args],
@@ -280,12 +306,13 @@ def test_install_rerun_upgrade_failures_and_rollback(sshd, wheels, tmp_path):
     assert current(root) == second and previous(root) == first
     assert sorted(p.name for p in (root / "releases").iterdir()) == sorted([first, second])
 
-    # 6. a bootstrap step that fails (the test hook): bootstrap rolls back by itself
+    # 6. a bootstrap step that fails (the switch itself): bootstrap rolls back by itself
     other = drone_config(tmp_path / "other")
-    r = run_deploy(sshd, *target, "--config", str(other), *venv, "--wheel", str(wheels.bumped),
-                   env_extra={dp.TEST_HOOK_ENV: "switch"})
+    fail_the_switch(root)
+    r = run_deploy(sshd, *target, "--config", str(other), *venv, "--wheel", str(wheels.bumped))
     assert r.returncode == 1, r.stdout + r.stderr
-    assert "bootstrap failed" in r.stdout and "failed on purpose" in r.stdout and f"{second} is current" in r.stdout
+    assert not (root / ".fail-the-switch").exists(), "the injected failure did not happen"
+    assert "bootstrap failed" in r.stdout and "injected by the test" in r.stdout and f"{second} is current" in r.stdout
     assert current(root) == second and previous(root) == first
     assert sorted(p.name for p in (root / "releases").iterdir()) == sorted([first, second])
 
@@ -496,7 +523,7 @@ def test_systemd_unit(tmp_path):
         assert re.search(rf"^{re.escape(line)}$", text, re.MULTILINE), line
     tool = shutil.which("systemd-analyze")
     if tool is None:
-        pytest.skip("systemd-analyze is not installed (Debian package systemd)")
+        missing("systemd-analyze is not installed (Debian package systemd)")
     # verify wants ExecStart's program to exist: the same unit, run a program that does
     copy = tmp_path / UNIT.name
     copy.write_text(text.replace("ExecStart=/opt/triswarm/current/bin/triswarm-companion", f"ExecStart={shutil.which('true')}"))

@@ -219,11 +219,16 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
             wait_for(lambda: flying(link, 1) and flying(link, 2), 60.0, "both drones in formation")
             # Two ground stations on the same links at once (the monitor, and this link): each
             # gets all of the forwarded telemetry (GCS_TLM_HZ), not a share of it.
-            with link.subscribe(None, COMP_AUTOPILOT, "ATTITUDE") as attitudes:
+            with link.subscribe(None, COMP_AUTOPILOT, "ATTITUDE") as attitudes, \
+                    link.subscribe(None, COMP_ONBOARD, "NAMED_VALUE_FLOAT") as named:
                 done = subprocess.run(triswarm("monitor", "--manifest", str(stack.swarm_manifest), "--once",
                                                "--tlog", str(tmp_path / "monitor.tlog")),
                                       capture_output=True, text=True, timeout=30)
                 here = [(m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: attitudes.get(0.0), None)]
+                reported = {}  # drone -> the formation errors its companion reported meanwhile [m]
+                for m in iter(lambda: named.get(0.0), None):
+                    if m.name == "FORM_ERRM":
+                        reported.setdefault(m.get_srcSystem(), set()).add(f"{m.value:.3f}")
     tlog = mavutil.mavlink_connection(str(tmp_path / "monitor.tlog"))
     there = [(m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: tlog.recv_match(type="ATTITUDE"), None)]
     tlog.close()
@@ -238,8 +243,9 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
     assert done.returncode == 0, done.stdout + done.stderr
     drones = table_rows(done.stdout)
     assert sorted(drones) == ["1", "2"], done.stdout
-    for row in drones.values():
+    for drone, row in drones.items():
         assert (row["armed"], row["mode"], row["failsafe"], row["phase"]) == ("yes", "EXTERNAL", "no", "flying"), done.stdout
-        assert float(row["form err [m]"]) >= 0.0
+        # the formation error shown is one its companion sent (FORM_ERRM) while the monitor listened
+        assert row["form err [m]"] in reported.get(int(drone), set()), (drone, row["form err [m]"], reported)
         assert float(row["link"].removesuffix(" s")) < 2.0
         assert len(row["position NED [m]"].split(", ")) == 3

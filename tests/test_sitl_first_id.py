@@ -22,9 +22,21 @@ def starts(m: dict) -> np.ndarray:
     return np.array([frames.flip(np.array(v["start_ned_m"])) for v in m["vehicles"]])
 
 
-def test_default_is_unchanged():
-    for n in range(1, 10):
-        np.testing.assert_array_equal(ground_grid(n, 2.5, first_id=1), ground_grid(n, 2.5))
+def test_one_process_rests_on_a_centred_grid():
+    # by hand: rows of ceil(sqrt(n)) vehicles, north then west, the grid's box centred on the origin
+    np.testing.assert_allclose(ground_grid(1, 2.5), [[0.0, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(ground_grid(2, 2.5), [[0.0, 1.25, 0.0], [0.0, -1.25, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(ground_grid(3, 2.5), [[-1.25, 1.25, 0.0], [-1.25, -1.25, 0.0], [1.25, 1.25, 0.0]],
+                               atol=1e-12)
+    for n in range(2, 31):
+        p = ground_grid(n, 2.0)
+        assert p.shape == (n, 3) and np.all(p[:, 2] == 0.0)
+        gaps = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2) + np.eye(n) * 1e9
+        assert gaps.min() == pytest.approx(2.0), n  # neighbours exactly one spacing apart
+        cols = int(np.ceil(np.sqrt(n)))
+        assert np.ptp(p[:, 1]) == pytest.approx(2.0 * (cols - 1)), n  # a full first row
+        assert p[:, 1].max() == pytest.approx(-p[:, 1].min()), n  # centred east-west
+        assert p[:, 0].max() == pytest.approx(-p[:, 0].min()), n  # and north-south
     m = manifest(3)
     assert [v["sysid"] for v in m["vehicles"]] == [1, 2, 3]
     np.testing.assert_allclose(starts(m), ground_grid(3), atol=1e-12)

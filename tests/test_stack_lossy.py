@@ -49,7 +49,7 @@ from pathlib import Path
 import pytest
 
 from .lossy_flight import N, RELAY_BASE, ZENOH_BASE
-from .netem import NetNamespace
+from .netem import NetNamespace, need_netns
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 DROP = 0.2
@@ -64,9 +64,7 @@ that answers 15-20 ms late loses the formation by kilometres, not by centimetres
 
 
 def test_drop_20_percent_and_delay_20_ms(tmp_path):
-    problem = NetNamespace.problem()
-    if problem:
-        pytest.fail(f"cannot impair the network here: {problem} (make test installs iptables when run as root)")
+    need_netns()
     zenoh_ports = f"{ZENOH_BASE + 1}:{ZENOH_BASE + N}"
     relay_ports = f"{RELAY_BASE + 1}:{RELAY_BASE + N}"
     out = tmp_path / "result.json"
