@@ -14,7 +14,7 @@ from rich.table import Table
 
 from triswarm.protocol.frames import DEFAULT_HOME
 
-from .errors import UserError, console, err_console, user_errors
+from .errors import UserError, console, err_console, short_number, user_errors
 from .plan_cmd import plan_app
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
@@ -149,13 +149,6 @@ def sim(
         raise typer.Exit(code=1)
 
 
-def _num(x: float | None) -> str:
-    """A short, honest rendering: tiny errors in scientific notation rather than 0.0000."""
-    if x is None or not math.isfinite(x):
-        return "-"
-    return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"
-
-
 def _print_result(plan, perf, per_drone, result, out_dir: Path, fig_paths: list[Path]) -> None:
     table = Table(title=f"{plan.name}: worst errors over [{perf.window_start_s:g} s, end]")
     table.add_column("drone", justify="right")
@@ -165,15 +158,16 @@ def _print_result(plan, perf, per_drone, result, out_dir: Path, fig_paths: list[
     table.add_column("rotor max [RPM]", justify="right")
     shown = per_drone if len(per_drone) <= 20 else per_drone[:10] + per_drone[-5:]
     for row in shown:
-        table.add_row(str(row["drone"]), _num(row["worst_position_error_m"]), _num(row["worst_attitude_error_rad"]),
+        table.add_row(str(row["drone"]), short_number(row["worst_position_error_m"]),
+                      short_number(row["worst_attitude_error_rad"]),
                       f"{row['max_servo_angle_deg']:.1f}", f"{row['max_rotor_speed_rpm']:.0f}")
     console.print(table)
     verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
     conv = ("did not settle within them" if perf.convergence_time_s is None
             else f"within them from {perf.convergence_time_s:.2f} s")
     console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
-                  f"(worst {_num(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
-                  f"{_num(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone}); {conv}; "
+                  f"(worst {short_number(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
+                  f"{short_number(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone}); {conv}; "
                   f"wall time {result.wall_s:.1f} s")
     if result.diverged_at_s is not None:
         console.print(f"[red]the simulation stopped at t = {result.diverged_at_s:.2f} s: a drone's state left the valid range[/]")

@@ -7,30 +7,17 @@ reports like the rest of the CLI (gcs/errors.py) without importing it: that modu
 
 from __future__ import annotations
 
-import contextlib
 import threading
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.console import Console
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.text import Text
 
+from .errors import console, user_errors
 from .deploy import DEFAULT_ROOT, SOURCE, DeployError, Outcome, Target, deploy_all, load_inventory, validate_target
 
-console = Console()
-err_console = Console(stderr=True)
-
-
-@contextlib.contextmanager
-def user_errors():
-    """A mistake in the command: one sentence on stderr and exit status 2 (as gcs/errors.py)."""
-    try:
-        yield
-    except (DeployError, ValueError, FileNotFoundError) as exc:
-        err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=2) from None
 
 
 _STYLE = {"installed": "green", "unchanged": "green", "rolled back": "yellow", "failed": "red", "plan": "cyan"}

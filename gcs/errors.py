@@ -1,8 +1,10 @@
-"""How the operator's CLI reports: its consoles, and a user's mistake as one sentence and exit status 2."""
+"""How the operator's CLI reports: its consoles, numbers in tables, and a user's mistake as one sentence and
+exit status 2."""
 
 from __future__ import annotations
 
 import contextlib
+import math
 
 import typer
 from rich.console import Console
@@ -30,3 +32,10 @@ def user_errors():
     except (UserError, *USER_ERRORS) as exc:
         err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=2) from None
+
+
+def short_number(x: float | None) -> str:
+    """A short, honest rendering for tables: tiny errors in scientific notation rather than 0.0000."""
+    if x is None or not math.isfinite(x):
+        return "-"
+    return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"

@@ -14,7 +14,7 @@ from rich.table import Table
 
 from triswarm.protocol import metrics
 
-from .errors import UserError, console, user_errors
+from .errors import UserError, console, short_number, user_errors
 from .scenarios import load_plan
 
 if TYPE_CHECKING:
@@ -114,12 +114,6 @@ def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metr
     return rows
 
 
-def _num(x: float | None) -> str:
-    if x is None or not math.isfinite(x):
-        return "-"
-    return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"
-
-
 def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], log: RunLog, run: Path,
                   fig_paths: list[Path]) -> None:
     table = Table(title=f"{name}: worst errors over [{perf.window_start_s:g} s, {log.t_s[-1]:.1f} s] of the flight "
@@ -130,13 +124,14 @@ def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], l
     table.add_column("largest gap [s]", justify="right")
     table.add_column("verdict")
     for row in per_drone:
-        table.add_row(str(row["drone"]), _num(row["worst_position_error_m"]), _num(row["worst_attitude_error_rad"]),
+        table.add_row(str(row["drone"]), short_number(row["worst_position_error_m"]),
+                      short_number(row["worst_attitude_error_rad"]),
                       f"{row['largest_gap_s']:.2f}", "[green]within[/]" if row["within_bounds"] else "[red]outside[/]")
     console.print(table)
     verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
     console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
-                  f"(worst {_num(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
-                  f"{_num(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
+                  f"(worst {short_number(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
+                  f"{short_number(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
     if log.tlog.skipped_bytes:
         console.print(f"gcs.tlog: {log.tlog.frames} frames read; {log.tlog.skipped_bytes} bytes skipped "
                       f"in {log.tlog.skipped_runs} places (garbage or broken frames)")

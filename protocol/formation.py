@@ -115,6 +115,13 @@ class ConstantFormation(Formation):
         return self._offsets
 
 
+def paper_attitudes(n_agents: int) -> np.ndarray:
+    """The case study's attitudes (a plan's ``attitude_rad = "paper-alternating"``): (-0.5, -0.5, 0.5)
+    * (-1)^i rad for drone i = 1 .. n, (n, 3)."""
+    sign = np.array([(-1.0) ** i for i in range(1, n_agents + 1)])
+    return np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
+
+
 @dataclass(frozen=True)
 class RotatingPolygon(Formation):
     """The paper's formation generalised to N agents: agent i (from 1) at phase 2 pi (i-1)/N on a
@@ -147,9 +154,7 @@ class RotatingPolygon(Formation):
 
     @classmethod
     def paper(cls, n_agents: int = 6) -> "RotatingPolygon":
-        sign = np.array([(-1.0) ** i for i in range(1, n_agents + 1)])
-        att = np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
-        return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=att)
+        return cls(n_agents, radius_m=10.0, altitude_m=20.0, rate_rad_s=1.0, attitude_rad=paper_attitudes(n_agents))
 
     def kinematics(self, t_s: float) -> Kinematics:
         n, R, w = self.n_agents, self.radius_m, self.rate_rad_s

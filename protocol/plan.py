@@ -36,7 +36,7 @@ from .airframe import RPM_TO_RAD_S, Airframe, ParameterError
 from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
-                        RotatingPolygon)
+                        RotatingPolygon, paper_attitudes)
 from .graph import GraphError, Schedule, Topology
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
@@ -396,8 +396,7 @@ def _airframe(f: _Fields) -> Airframe:
 def _attitudes(f: _Fields, n: int) -> np.ndarray:
     value = f.get("attitude_rad", [0.0, 0.0, 0.0])
     if value == "paper-alternating":
-        sign = np.array([(-1.0) ** i for i in range(1, n + 1)])
-        return np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
+        return paper_attitudes(n)
     return f.array("attitude_rad", (n, 3), [0.0, 0.0, 0.0], per_drone=n)
 
 
