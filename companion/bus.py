@@ -30,18 +30,24 @@ from collections.abc import Callable
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
-# One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
-# second, a multi-threaded runtime only spends the CPU on waking its own threads. Read when the
-# first session opens; a deployment can set its own ZENOH_RUNTIME.
-os.environ.setdefault("ZENOH_RUNTIME", "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), "
-                                       "rx: (handover: app), net: (handover: app))")
+import zenoh
 
-import zenoh  # noqa: E402
+ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+                      "net: (handover: app))")
+"""One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
+second, a multi-threaded runtime only spends the CPU on waking its own threads."""
 
 from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of_key, alive_key, decode_header,
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
 DEFAULT_ZENOH_BASE_PORT = 17447
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """A Zenoh session of the companion's. Zenoh reads ZENOH_RUNTIME when a process opens its first
+    session: unless the deployment set its own, the companion's is ``ONE_WORKER_RUNTIME``."""
+    os.environ.setdefault("ZENOH_RUNTIME", ONE_WORKER_RUNTIME)
+    return zenoh.open(config)
 INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
 
 
@@ -146,7 +152,7 @@ class Bus:
         self._loop_thread = threading.get_ident()
         self._called = False
         self._own_session = not isinstance(config, zenoh.Session)
-        self.session = zenoh.open(config) if self._own_session else config
+        self.session = open_session(config) if self._own_session else config
         s = self.session
         self._declare_estimate_publisher()
         self._pub_status = s.declare_publisher(status_key(self.swarm, self.agent))

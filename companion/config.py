@@ -319,13 +319,13 @@ def _check_zenoh(c: Checks, v: dict[str, Any]) -> None:
     except ImportError as exc:
         c.fail("zenoh", f"eclipse-zenoh is not importable ({exc})")
         return
-    import zenoh
+    from .bus import open_session
 
     box: dict[str, Any] = {}
 
     def attempt() -> None:
         try:
-            box["session"] = zenoh.open(cfg)
+            box["session"] = open_session(cfg)
         except Exception as exc:
             box["error"] = exc
 

@@ -26,9 +26,9 @@ class SharedZenoh:
 
     def session(self, n_agents: int):
         if self._session is None:
-            import zenoh
+            from .bus import open_session
 
-            self._session = zenoh.open(zenoh_config(self.opts, self.agents, n_agents))
+            self._session = open_session(zenoh_config(self.opts, self.agents, n_agents))
         return self._session
 
     def close(self) -> None:
