@@ -79,7 +79,7 @@ def companion(
     zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
     zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
     swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
-    from .companion import CompanionOptions, write_stats
+    from .companion import CompanionOptions, StartupError, write_stats
     from .host import agent_options, run_agents
 
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
@@ -100,12 +100,16 @@ def companion(
             return await run_agents(every, stop)
 
         results = asyncio.run(main())
-    except (PlanError, ParameterError, GraphError, ValueError, OSError) as exc:
+    except (PlanError, ParameterError, GraphError, StartupError) as exc:  # (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
     for o, result in zip(every, results):
         if o.stats_path is not None:
-            write_stats(o.stats_path, result)
+            try:
+                write_stats(o.stats_path, result)
+            except OSError as exc:
+                print(f"triswarm-companion: error: cannot write the stats to {o.stats_path}: {exc.strerror}", file=sys.stderr)
+                raise typer.Exit(code=2) from None
 
 
 def main() -> None:

@@ -70,6 +70,11 @@ from .state import Mission, StateStore
 log = logging.getLogger("triswarm.companion")
 
 
+class StartupError(Exception):
+    """The companion cannot start as asked (a link it cannot open, an unreadable signing key, a Zenoh
+    session it cannot open): one sentence for the operator, exit status 2."""
+
+
 class AgentLog(logging.LoggerAdapter):
     """The companion's log, each line naming its agent (several agents may share a process)."""
 
@@ -223,7 +228,10 @@ class Companion:
         self.shared_zenoh = shared_zenoh
         self.agent = opts.agent
         self.log = AgentLog(log, {"agent": opts.agent})
-        self.signing_key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
+        try:
+            self.signing_key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
+        except ValueError as exc:  # (one sentence: the file and what is wrong with it)
+            raise StartupError(str(exc)) from None
         self._refusals_told: Counter[str] = Counter()
         self._signing_kept: dict[str, int] = {}  # the signing streams as last saved
         self.store = StateStore(opts.state_dir)
@@ -481,10 +489,18 @@ class Companion:
         self.plans = PlanServer(self._receive_plan, self._clear_plans, self._held_items, self._say)
         tasks: list[asyncio.Task] = []
         try:
-            self.fc_link.open(loop, self._on_fc)
-            self.gcs_link.open(loop, self._on_gcs)
+            try:
+                self.fc_link.open(loop, self._on_fc)
+                self.gcs_link.open(loop, self._on_gcs)
+            except OSError as exc:  # (MavLink.open: one sentence naming the link and its URL)
+                raise StartupError(str(exc)) from None
             if self.plan is not None:
-                self._open_bus(loop)
+                import zenoh
+
+                try:
+                    self._open_bus(loop)
+                except zenoh.ZError as exc:  # e.g. a port to listen on that is taken
+                    raise StartupError(f"cannot open the Zenoh session: {exc}") from None
             self.fc_link.after_read = self._process_samples
             tasks.append(asyncio.create_task(self._every_second()))
             tasks.append(asyncio.create_task(self._poll_plans()))

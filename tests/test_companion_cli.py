@@ -1,0 +1,52 @@
+"""`triswarm-companion` refuses to start as asked in one sentence with exit status 2 (a link it cannot
+open, a port taken, a Zenoh endpoint it cannot listen on), and never calls a bug a user error."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import PAPER_PLAN_FILE
+
+COMPANION = [sys.executable, "-m", "triswarm.companion.cli", "--id", "1"]
+
+
+def one_error(args: list[str]) -> str:
+    r = subprocess.run(COMPANION + args, capture_output=True, text=True, timeout=120)
+    lines = [line for line in r.stderr.splitlines() if line.strip() and "triswarm-companion: error:" in line]
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    return lines[0]
+
+
+def test_a_link_url_it_cannot_open():
+    line = one_error(["--fc", "udpin:999.1.1.1:5", "--gcs", "udpin:127.0.0.1:0"])
+    assert "cannot open MAVLink link fc at udpin:999.1.1.1:5" in line, line
+
+
+def test_a_ground_station_port_that_is_taken():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", f"udpin:127.0.0.1:{port}"])
+    assert f"cannot open MAVLink link gcs at udpin:127.0.0.1:{port}" in line, line
+
+
+def test_a_zenoh_endpoint_that_is_taken():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", "--plan", str(PAPER_PLAN_FILE),
+                          "--zenoh-listen", f"tcp/127.0.0.1:{port}"])
+    assert "cannot open the Zenoh session" in line and str(port) in line, line
+
+
+@pytest.mark.parametrize("plan_text, message", [("drones = 0\n", "drones"), ("[formation\n", "")])
+def test_a_bad_plan_file(tmp_path, plan_text, message):
+    plan = tmp_path / "bad.toml"
+    plan.write_text(plan_text)
+    line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", "--plan", str(plan)])
+    assert str(plan) in line and message in line, line
