@@ -11,6 +11,7 @@ the figures. Exit 0 only if the formation met the bounds over [25 s, end].
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import math
@@ -29,7 +30,7 @@ from .errors import console, err_console, user_errors
 from .link import GroundLink
 from .plot_cmd import plot
 from .scenarios import read_plan_spec, plan_text
-from .stack import Stack
+from .stack import Stack, StackError
 from .swarm_cmd import command_all, start_all, upload_all
 
 STARTUP_S = 120.0  # companions load numba kernels and open Zenoh; two busy cores can take a while
@@ -67,12 +68,23 @@ def demo(
     items = encode_plan(plan.spec)
     pid = decode_plan(items)[1]
     run = out or Path("runs") / _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    run.mkdir(parents=True, exist_ok=True)
-    (run / "plan.toml").write_text(plan_text(plan_name), encoding="utf-8")
+    try:
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "plan.toml").write_text(plan_text(plan_name), encoding="utf-8")
+    except OSError as exc:
+        err_console.print(f"triswarm: error: cannot write the run folder {run}: {exc.strerror}", markup=False,
+                          soft_wrap=True)
+        raise typer.Exit(code=2) from None
     n = plan.n_agents
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
-    with Stack(None, run / "stack", n, lockstep=lockstep, agents_per_process=agents_per_process) as stack, \
-            GroundLink(stack.endpoints(), tlog=run / "gcs.tlog") as link:
+    with contextlib.ExitStack() as running:
+        try:
+            stack = running.enter_context(Stack(None, run / "stack", n, lockstep=lockstep,
+                                                agents_per_process=agents_per_process))
+        except StackError as exc:
+            err_console.print(f"triswarm demo: the stack did not start: {exc}", markup=False, soft_wrap=True)
+            raise typer.Exit(code=1) from None
+        link = running.enter_context(GroundLink(stack.endpoints(), tlog=run / "gcs.tlog"))
         ids = list(range(1, n + 1))
         console.print(f"sitl and {n} companions started (logs in {run / 'stack' / 'logs'})")
         _wait("every companion's heartbeat", lambda: all(link.companion(i).heartbeat for i in ids)

@@ -23,6 +23,10 @@ def _below_ephemeral() -> tuple[int, int]:
     return max(1024, low - 20000), low
 
 
+class StackError(RuntimeError):
+    """The stack could not start (a process that died at start, no free ports): one sentence."""
+
+
 def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: frozenset[int] = frozenset()) -> list[int]:
     """Ports free for both TCP and UDP on loopback (contiguous: base+1..base+count), picked below the
     kernel's ephemeral range, none of them in ``exclude`` (ports picked earlier and not bound yet).
@@ -57,7 +61,7 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: 
                 picked[port] = None
                 if len(picked) == count:
                     return list(picked)
-    raise RuntimeError(f"no {count} free ports found below the ephemeral range ({lo}-{hi - 1})")
+    raise StackError(f"no {count} free ports found below the ephemeral range ({lo}-{hi - 1})")
 
 
 @dataclass
@@ -101,6 +105,13 @@ class Stack:
         return proc
 
     def __enter__(self) -> "Stack":
+        try:
+            return self._start()
+        except BaseException:  # (whatever stops the start stops what had started)
+            self.__exit__(None, None, None)
+            raise
+
+    def _start(self) -> "Stack":
         for sub in ("logs", "state", "stats"):
             (self.workdir / sub).mkdir(parents=True, exist_ok=True)
         manifest_path = self.workdir / "manifest.json"
@@ -110,8 +121,11 @@ class Stack:
         deadline = time.monotonic() + 60.0
         while not manifest_path.exists():
             if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
-                self.__exit__(None, None, None)
-                raise RuntimeError(f"sitl did not start (see {self.workdir / 'logs' / 'sitl.log'})")
+                self.__exit__(None, None, None)  # (first: the log is complete once the sitl is gone)
+                log = self.workdir / "logs" / "sitl.log"
+                lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+                said = f": {lines[-1].strip()}" if lines else ""
+                raise StackError(f"sitl did not start{said} (log: {log})")
             time.sleep(0.05)
         self.manifest = json.loads(manifest_path.read_text())
         zenoh_ports = free_ports(self.n, contiguous=True)

@@ -1,7 +1,13 @@
 """The ports a stack picks for its companions' listeners (which peers must know before they start):
-free for TCP and UDP, below the kernel's ephemeral range, and never one picked twice."""
+free for TCP and UDP, below the kernel's ephemeral range, and never one picked twice. A stack (and the
+demo) that cannot start says why in one sentence and leaves no process behind."""
 
-from triswarm.gcs.stack import _below_ephemeral, free_ports
+import subprocess
+import sys
+
+import pytest
+
+from triswarm.gcs.stack import Stack, StackError, _below_ephemeral, free_ports
 
 
 def test_ports_are_free_below_the_ephemeral_range_and_apart():
@@ -12,3 +18,23 @@ def test_ports_are_free_below_the_ephemeral_range_and_apart():
         gcs = free_ports(200, exclude=frozenset(zenoh))
         assert len(set(gcs)) == 200 and not set(gcs) & set(zenoh)
         assert all(lo <= p < hi for p in zenoh + gcs)
+
+
+def test_a_sitl_that_does_not_start_is_one_sentence_and_leaves_nothing(tmp_path):
+    stack = Stack(None, tmp_path / "stack", 2, sitl_args=["--no-such-option"])
+    with pytest.raises(StackError) as got:
+        stack.__enter__()
+    message = str(got.value)
+    assert message.startswith("sitl did not start: ") and "--no-such-option" in message, message
+    assert f"(log: {tmp_path / 'stack' / 'logs' / 'sitl.log'})" in message, message
+    assert all(p.poll() is not None for p in stack.procs.values())
+
+
+def test_the_demo_says_in_one_sentence_what_stops_it(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "demo", "--out", str(blocker / "run")],
+                       capture_output=True, text=True, timeout=120)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith(f"triswarm: error: cannot write the run folder {blocker / 'run'}"), lines
