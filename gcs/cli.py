@@ -71,7 +71,8 @@ def sim(
     position_bound_m: Annotated[float, typer.Option(help="Position bound for the verdict [m].")] = 0.10,
     attitude_bound_rad: Annotated[float, typer.Option(help="Attitude bound for the verdict [rad].")] = 0.02,
     strict: Annotated[bool, typer.Option(help="Exit 1 if the formation misses the bounds over the settled window "
-                                              "(from the entry's end + check.settle_s, 25 s for the case study).")] = False,
+                                              "(from the entry's end + check.settle_s, 25 s for the case study; the "
+                                              "second half of a flight that ends before that).")] = False,
     force: Annotated[bool, typer.Option(help="Fly even a plan that plan check refuses for its switching certificate or "
                                              "its separation (to see what would happen).")] = False,
     figures: Annotated[bool, typer.Option(help="Write the PNG figures.")] = True,
