@@ -32,15 +32,15 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
-                      "net: (handover: app))")
-"""One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
-second, a multi-threaded runtime only spends the CPU on waking its own threads."""
-
 from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of_key, alive_key, decode_header,
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
 DEFAULT_ZENOH_BASE_PORT = 17447
+INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
+ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+                      "net: (handover: app))")
+"""One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
+second, a multi-threaded runtime only spends the CPU on waking its own threads."""
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:
@@ -48,7 +48,6 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
     session: unless the deployment set its own, the companion's is ``ONE_WORKER_RUNTIME``."""
     os.environ.setdefault("ZENOH_RUNTIME", ONE_WORKER_RUNTIME)
     return zenoh.open(config)
-INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
 
 
 def default_config(agents: int | frozenset[int], n_agents: int, base_port: int = DEFAULT_ZENOH_BASE_PORT,
