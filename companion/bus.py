@@ -1,19 +1,27 @@
-"""The Zenoh side of a companion: its estimate out, its neighbours' in, liveliness and status.
+"""The Zenoh side of a companion process: its agents' estimates out, their neighbours' in,
+liveliness and status.
 
-Transport: every session has a TCP and a UDP link to each peer (``transport/unicast/max_links`` 2).
-Estimates are published best effort (express, dropped under congestion) and so ride UDP: a lost
-estimate is replaced by the next one 5 ms later, and nothing waits for a retransmission. In
-lockstep (``reliable_estimates``) every estimate is awaited, so they are published reliably (TCP).
-Declarations, liveliness, status and health are reliable and ride TCP.
+One ``Bus`` per process and swarm, on one Zenoh session, whatever the number of agents the process
+flies (one on a drone). Each agent ``join``s it with its plan and the agents it listens to; the bus
+declares the agent's keys (estimate, status, health, liveliness token) and subscribes to the
+estimates of the agents it listens to that fly in other processes. The newest estimate of every
+agent (``estimates``) is one table for the whole process: an agent of this process writes its own
+there when it publishes, so its neighbours in the process read it with no network hop and no
+decoding; estimates from other processes come through Zenoh, are validated, and land in the same
+table. Each agent reads only its in-neighbours' entries, and only those of the plans it flies.
+
+Transport: every session has a TCP and a UDP link to each peer (``transport/unicast/max_links``
+2). Estimates are published best effort (express, dropped under congestion) and so ride UDP: a
+lost estimate is replaced by the next one a period later, and nothing waits for a retransmission.
+In lockstep (``reliable_estimates``) every estimate is awaited, so they are published reliably
+(TCP). Declarations, liveliness, status and health are reliable and ride TCP.
 
 Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
 thread, tags the payload with the agent whose key it came on and appends it to an inbox (a deque,
-the newest 256 kept); while the loop waits for its neighbours it also rings a doorbell (a local
-datagram socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment
-it arrives and the others cost no wake-up at all. An estimate of an agent of the same process is
-delivered in the publisher's call, on the loop's own thread: that one is taken at the loop's next
-turn, with no doorbell. Decoding, validation and counting all happen in
-the loop. Liveliness and status change rarely: ring channels the loop drains at every tick.
+the newest 256 kept); while the loop waits for estimates it also rings a doorbell (a local datagram
+socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment it arrives
+and the others cost no wake-up at all. Decoding, validation and counting happen in the loop.
+Liveliness and status change rarely: ring channels the loop drains at every tick.
 """
 
 from __future__ import annotations
@@ -24,11 +32,10 @@ import json
 import math
 import os
 import socket
-import threading
 import time
-from collections.abc import Callable
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import zenoh
 
@@ -82,16 +89,17 @@ def tune(cfg: zenoh.Config) -> zenoh.Config:
 
 
 class Neighbour:
-    """The newest valid estimate from one agent."""
+    """The newest valid estimate of one agent (of this process or another)."""
 
-    __slots__ = ("seq", "stamp_s", "t_plan_s", "status", "received_at", "xi")
+    __slots__ = ("seq", "stamp_s", "t_plan_s", "status", "plan_id", "received_at", "xi")
 
     def __init__(self) -> None:
         self.seq = -1
         self.stamp_s = -math.inf      # when it was published (the sender's wall clock) [s]
         self.t_plan_s = -math.inf     # the plan time it refers to [s]
         self.status = AgentStatus.IDLE
-        self.received_at = -math.inf  # when this agent took it in [s]
+        self.plan_id = -1
+        self.received_at = -math.inf  # when this process took it in [s]
         self.xi = None                # (12,) x_r order
 
     @property
@@ -101,8 +109,7 @@ class Neighbour:
 
 @functools.lru_cache(maxsize=1024)
 def _parse_status(key: str, data: bytes) -> tuple[int, AgentStatus, object] | None:
-    """(agent, status, plan) of a status sample, None if it is not a valid one for its key. Kept
-    for the recent samples: every agent of a process hears every status, and parses it once."""
+    """(agent, status, plan) of a status sample, None if it is not a valid one for its key."""
     try:
         msg = json.loads(data)
         agent, status = int(msg["agent"]), AgentStatus[msg["status"]]
@@ -114,121 +121,75 @@ def _parse_status(key: str, data: bytes) -> tuple[int, AgentStatus, object] | No
 
 
 @dataclass
-class Bus:
-    swarm: str
-    agent: int
+class _Member:
+    """An agent of this process on the bus: its plans and its keys."""
     plan_id: int
     listen_to: frozenset[int]
-    """Agents whose estimates this agent may use: in-neighbours in some topology of the schedule."""
-    n_agents: int
-    counters: Counter = field(default_factory=Counter)
-    neighbours: dict[int, Neighbour] = field(default_factory=dict)
-    alive: set[int] = field(default_factory=set)
-    statuses: dict[int, AgentStatus] = field(default_factory=dict)
-    on_estimate: Callable[[], None] | None = None
-    """Called (in the loop) after new neighbour estimates were taken in."""
-    changes: int = 0
-    """Counts the changes of ``alive`` and ``statuses`` (a reader caches what it derives from them)."""
-    reliable: bool = False
-    """Publish estimates reliably (lockstep: a lost one would stall the swarm's clock)."""
+    publisher: object
+    status_publisher: object
+    health_publisher: object
+    token: object
+    seq: int = 0
     previous_plan_id: int | None = None
     """After a plan change in flight, the plan before it: its estimates still count (neighbours
     switch within a tick of each other, and their estimates stay continuous through it)."""
 
-    def switch_plan(self, plan_id: int) -> None:
-        self.previous_plan_id, self.plan_id = self.plan_id, plan_id
+    @property
+    def plans(self) -> tuple[int, ...]:
+        return (self.plan_id,) if self.previous_plan_id is None else (self.plan_id, self.previous_plan_id)
+
+
+class Bus:
+    """The process's agents on one swarm's key space (``open``, then ``join`` each agent)."""
+
+    def __init__(self, swarm: str, n_agents: int, reliable: bool = False) -> None:
+        self.swarm = swarm
+        self.n_agents = n_agents
+        """Agent numbers above this are not of the swarm (the largest plan of the process's agents)."""
+        self.reliable = reliable
+        """Publish estimates reliably (lockstep: a lost one would stall the swarm's clock)."""
+        self.counters: Counter[str] = Counter()
+        self.estimates: dict[int, Neighbour] = {}
+        """The newest valid estimate of every agent of this process and of every agent one of them
+        listens to."""
+        self.alive: set[int] = set()
+        self.statuses: dict[int, tuple[AgentStatus, object]] = {}
+        """The newest status of each agent and the plan it said it flies."""
+        self.changes = 0
+        """Counts the changes of ``alive`` and ``statuses`` (a reader caches what it derives from them)."""
+        self.members: dict[int, _Member] = {}
+        self.on_estimates: Callable[[], None] | None = None
+        """Called (in the loop) after estimates from other processes were taken in."""
+        self.waiting = False
+        """Set by the loop while an agent waits for estimates: the callbacks then ring the doorbell."""
+        self._subscribed: dict[int, object] = {}
+
+    # -- session ------------------------------------------------------------------------------
 
     def open(self, config: zenoh.Config | zenoh.Session, loop: asyncio.AbstractEventLoop) -> None:
-        """Open a session with ``config``, or declare this agent's keys on a session of the process
-        (several agents in one process share it; its owner closes it)."""
+        """Open a session with ``config``, or use a session of the process (its owner closes it)."""
         self.loop = loop
         self._inbox: deque[bytes] = deque(maxlen=INBOX_SIZE)
         self._doorbell, self._bell = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
         for sock in (self._doorbell, self._bell):
             sock.setblocking(False)
-        self.waiting = False
-        """Set by the loop while it waits for estimates: the callbacks then ring the doorbell."""
-        self._loop_thread = threading.get_ident()
-        self._called = False
         self._own_session = not isinstance(config, zenoh.Session)
         self.session = open_session(config) if self._own_session else config
         s = self.session
-        self._declare_estimate_publisher()
-        self._pub_status = s.declare_publisher(status_key(self.swarm, self.agent))
-        self._pub_health = s.declare_publisher(health_key(self.swarm, self.agent))
-        self._token = s.liveliness().declare_token(alive_key(self.swarm, self.agent))
-        for j in self.listen_to:
-            self.neighbours[j] = Neighbour()
-        self._estimate_subs = [s.declare_subscriber(estimate_key(self.swarm, j),
-                                                    zenoh.handlers.Callback(self._handover(j), indirect=False))
-                               for j in sorted(self.listen_to)]
         self._status_sub = s.declare_subscriber(status_key(self.swarm, "*"), zenoh.handlers.RingChannel(256))
         self._alive_sub = s.liveliness().declare_subscriber(alive_key(self.swarm, "*"), zenoh.handlers.FifoChannel(1024),
                                                             history=True)
-        self._subs = [*self._estimate_subs, self._status_sub, self._alive_sub]
-        self.alive.add(self.agent)
-        self.seq = 0
         loop.add_reader(self._doorbell.fileno(), self._answer_door)
-
-    def _declare_estimate_publisher(self) -> None:
-        reliable = self.reliable
-        self._pub_estimate = self.session.declare_publisher(
-            estimate_key(self.swarm, self.agent), express=True,
-            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP)
-
-    def reliable_estimates(self) -> None:
-        """From now on publish estimates reliably."""
-        if self.reliable:
-            return
-        self.reliable = True
-        if "session" in self.__dict__:
-            self._pub_estimate.undeclare()
-            self._declare_estimate_publisher()
-
-    def _handover(self, agent: int) -> Callable:
-        """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
-        and ring if the loop is waiting. (Appending before looking at ``waiting``, while the loop
-        sets ``waiting`` before it looks at the inbox, loses no wake-up.)"""
-        tag, append, ring = bytes([agent]), self._inbox.append, self._bell.send
-
-        def handover(sample) -> None:
-            append(tag + sample.payload.to_bytes())
-            if self.waiting:
-                if threading.get_ident() == self._loop_thread:  # (an agent of this process published)
-                    if not self._called:
-                        self._called = True
-                        self.loop.call_soon(self._take_now)
-                    return
-                try:
-                    ring(b"!")
-                except OSError:  # the doorbell's buffer is full: the loop is awake anyway
-                    pass
-
-        return handover
-
-    def _take_now(self) -> None:
-        self._called = False
-        self.take_estimates()
-
-    def _answer_door(self) -> None:
-        try:
-            while self._doorbell.recv(16):
-                pass
-        except BlockingIOError:
-            pass
-        self.take_estimates()
 
     def close(self) -> None:
         """Undeclare everything and close the session (again: nothing)."""
         session = self.__dict__.pop("session", None)
         if session is None:
             return
-        for sub in self._subs:
-            sub.undeclare()
-        self._token.undeclare()
-        for pub in (self._pub_estimate, self._pub_status, self._pub_health):
-            pub.undeclare()
+        for agent in list(self.members):
+            self.leave(agent)
+        self._status_sub.undeclare()
+        self._alive_sub.undeclare()
         if self._own_session:
             session.close()
         try:
@@ -237,6 +198,91 @@ class Bus:
             pass
         self._doorbell.close()
         self._bell.close()
+
+    # -- members ------------------------------------------------------------------------------
+
+    def join(self, agent: int, plan_id: int, listen_to: frozenset[int]) -> None:
+        """Declare agent ``agent`` of this process (its keys and liveliness), flying plan ``plan_id``
+        and listening to the estimates of ``listen_to``."""
+        if agent in self.members:
+            self.leave(agent)
+        s = self.session
+        self.members[agent] = _Member(plan_id, frozenset(listen_to), self._estimate_publisher(agent),
+                                      s.declare_publisher(status_key(self.swarm, agent)),
+                                      s.declare_publisher(health_key(self.swarm, agent)),
+                                      s.liveliness().declare_token(alive_key(self.swarm, agent)))
+        self.estimates.setdefault(agent, Neighbour())
+        for j in listen_to:
+            self.estimates.setdefault(j, Neighbour())
+        self.alive.add(agent)
+        self._resubscribe()
+
+    def leave(self, agent: int) -> None:
+        member = self.members.pop(agent, None)
+        if member is None:
+            return
+        for declared in (member.publisher, member.status_publisher, member.health_publisher, member.token):
+            declared.undeclare()
+        self._resubscribe()
+
+    def switch_plan(self, agent: int, plan_id: int) -> None:
+        """Agent ``agent`` flies ``plan_id`` from now on; the plan before still counts."""
+        m = self.members[agent]
+        m.previous_plan_id, m.plan_id = m.plan_id, plan_id
+
+    def plans_of(self, agent: int) -> tuple[int, ...]:
+        return self.members[agent].plans
+
+    def reliable_estimates(self) -> None:
+        """From now on publish estimates reliably."""
+        if self.reliable:
+            return
+        self.reliable = True
+        for agent, m in self.members.items():
+            m.publisher.undeclare()
+            m.publisher = self._estimate_publisher(agent)
+
+    def _estimate_publisher(self, agent: int):
+        reliable = self.reliable
+        return self.session.declare_publisher(
+            estimate_key(self.swarm, agent), express=True,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP)
+
+    def _resubscribe(self) -> None:
+        """Subscribe to exactly the estimates of the agents some member listens to and that fly
+        in other processes (a member's own key is never heard from outside: an impostor's estimates
+        for it go nowhere)."""
+        wanted = set().union(*(m.listen_to for m in self.members.values())) - set(self.members)
+        for j in set(self._subscribed) - wanted:
+            self._subscribed.pop(j).undeclare()
+        for j in sorted(wanted - set(self._subscribed)):
+            self._subscribed[j] = self.session.declare_subscriber(
+                estimate_key(self.swarm, j), zenoh.handlers.Callback(self._handover(j), indirect=False))
+
+    def _handover(self, agent: int) -> Callable:
+        """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
+        and ring if the loop is waiting. (Appending before looking at ``waiting``, while the loop
+        sets ``waiting`` before it looks at the inbox, loses no wake-up.)"""
+        tag, append, ring = agent.to_bytes(2, "little"), self._inbox.append, self._bell.send
+
+        def handover(sample) -> None:
+            append(tag + sample.payload.to_bytes())
+            if self.waiting:
+                try:
+                    ring(b"!")
+                except OSError:  # the doorbell's buffer is full: the loop is awake anyway
+                    pass
+
+        return handover
+
+    def _answer_door(self) -> None:
+        try:
+            while self._doorbell.recv(16):
+                pass
+        except BlockingIOError:
+            pass
+        self.take_estimates()
 
     def counts(self) -> dict[str, int]:
         """What the bus took in and what it dropped, by reason."""
@@ -252,7 +298,7 @@ class Bus:
         pop = self._inbox.popleft
         while self._inbox:
             data = pop()
-            checked = self._check(data[0], data[1:])
+            checked = self._check(int.from_bytes(data[0:2], "little"), data[2:])
             if checked is None:
                 continue
             earlier = newest.get(checked[0])
@@ -264,8 +310,8 @@ class Bus:
             now = time.time()
             for checked in newest.values():
                 self._take(checked, now)
-            if self.on_estimate is not None:
-                self.on_estimate()
+            if self.on_estimates is not None:
+                self.on_estimates()
 
     def drain(self) -> None:
         """Take in liveliness and status changes (and any estimate not yet read)."""
@@ -275,10 +321,21 @@ class Bus:
         while (sample := self._status_sub.try_recv()) is not None:
             self._status(str(sample.key_expr), sample.payload.to_bytes())
 
-    def ready(self, agents: list[int], t_plan_s: float, tolerance_s: float) -> bool:
-        """Whether every agent in ``agents`` has an estimate for plan time >= t_plan_s - tolerance_s."""
-        nbs = self.neighbours
-        return all(nbs[j].t_plan_s >= t_plan_s - tolerance_s for j in agents)
+    def ready(self, agents: list[int], t_plan_s: float, tolerance_s: float, plans: tuple[int, ...]) -> bool:
+        """Whether every agent in ``agents`` has an estimate of one of ``plans`` for plan time
+        >= t_plan_s - tolerance_s."""
+        table = self.estimates
+        at = t_plan_s - tolerance_s
+        for j in agents:
+            nb = table[j]
+            if nb.t_plan_s < at or nb.plan_id not in plans:
+                return False
+        return True
+
+    def status_of(self, agent: int, plans: tuple[int, ...]) -> AgentStatus | None:
+        """What ``agent`` last said it does, if it said so for one of ``plans``."""
+        said = self.statuses.get(agent)
+        return None if said is None or said[1] not in plans else said[0]
 
     def _check(self, key_agent: int, data: bytes):
         """Validate one estimate's header; count and drop what is not for us or not newer."""
@@ -287,27 +344,28 @@ class Bus:
         except CodecError:
             self.counters["drop_undecodable"] += 1
             return None
-        nb = self.neighbours.get(agent)
-        if nb is None or key_agent != agent:
+        nb = self.estimates.get(agent)
+        if nb is None or key_agent != agent or agent in self.members:
             self.counters["drop_unknown_agent"] += 1
             return None
-        if plan != self.plan_id and plan != self.previous_plan_id:
+        if not any(plan in m.plans for m in self.members.values()):
             self.counters["drop_other_plan"] += 1
             return None
         if not _newer(t_plan, seq, nb.t_plan_s, nb.seq):
             self.counters["drop_old"] += 1
             return None
-        return agent, nb, data, status, seq, stamp, t_plan
+        return agent, nb, data, status, seq, stamp, t_plan, plan
 
     def _take(self, checked, t_rx: float) -> None:
         """Keep the newest valid sample of a neighbour (its xi checked here, once)."""
-        _, nb, data, status, seq, stamp, t_plan = checked
+        _, nb, data, status, seq, stamp, t_plan, plan = checked
         try:
             xi = decode_xi(data)
         except CodecError:
             self.counters["drop_undecodable"] += 1
             return
-        nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.received_at, nb.xi = seq, stamp, t_plan, status, t_rx, xi
+        nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.plan_id, nb.received_at, nb.xi = \
+            seq, stamp, t_plan, status, plan, t_rx, xi
         self.counters["estimates"] += 1
 
     def _status(self, key: str, data: bytes) -> None:
@@ -316,8 +374,8 @@ class Bus:
             self.counters["drop_bad_status"] += 1
             return
         agent, status, plan = parsed
-        if plan in (self.plan_id, self.previous_plan_id) and self.statuses.get(agent) != status:
-            self.statuses[agent] = status
+        if self.statuses.get(agent) != (status, plan):
+            self.statuses[agent] = (status, plan)
             self.changes += 1
 
     def _alive(self, key: str, present: bool) -> None:
@@ -327,28 +385,33 @@ class Bus:
             return
         if present:
             self.alive.add(agent)
-        elif agent != self.agent:
+        elif agent not in self.members:
             self.alive.discard(agent)
             self.statuses.pop(agent, None)
         self.changes += 1
 
     # -- outgoing ----------------------------------------------------------------------------
 
-    def publish_estimate(self, xi, t_plan_s: float, status: AgentStatus) -> None:
-        self.seq += 1
-        e = Estimate(self.agent, self.plan_id, self.seq, time.time(), t_plan_s, status, xi)
-        self._pub_estimate.put(encode_estimate(e))
+    def publish_estimate(self, agent: int, xi, t_plan_s: float, status: AgentStatus) -> None:
+        """Agent ``agent``'s estimate: into the process's table at once, and out on Zenoh."""
+        m = self.members[agent]
+        m.seq += 1
+        now = time.time()
+        nb = self.estimates[agent]
+        nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.plan_id, nb.received_at, nb.xi = \
+            m.seq, now, t_plan_s, status, m.plan_id, now, xi
+        m.publisher.put(encode_estimate(Estimate(agent, m.plan_id, m.seq, now, t_plan_s, status, xi)))
 
-    def publish_status(self, status: AgentStatus, reason: str = "", since_s: float | None = None) -> None:
+    def publish_status(self, agent: int, status: AgentStatus, reason: str = "", since_s: float | None = None) -> None:
         """The status, why, and since when (Unix time [s]). Sent at every change and once a second,
         whole each time: a put lost on the way costs a second, not the reason or the time."""
+        m = self.members[agent]
         now = time.time()
-        self._pub_status.put(json.dumps({"agent": self.agent, "plan": self.plan_id, "status": status.name,
-                                         "reason": reason, "since": now if since_s is None else since_s,
-                                         "t": now}).encode())
+        m.status_publisher.put(json.dumps({"agent": agent, "plan": m.plan_id, "status": status.name, "reason": reason,
+                                           "since": now if since_s is None else since_s, "t": now}).encode())
 
-    def publish_health(self, health: dict) -> None:
-        self._pub_health.put(json.dumps(health).encode())
+    def publish_health(self, agent: int, health: dict) -> None:
+        self.members[agent].health_publisher.put(json.dumps(health).encode())
 
 
 def _newer(t_plan_s: float, seq: int, than_t_plan_s: float, than_seq: int) -> bool:

@@ -79,7 +79,7 @@ def companion(
     zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
     zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
     swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
-    from .companion import CompanionOptions, StartupError, write_stats
+    from .agent import CompanionOptions, StartupError
     from .host import agent_options, run_agents
 
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
@@ -110,6 +110,14 @@ def companion(
             except OSError as exc:
                 print(f"triswarm-companion: error: cannot write the stats to {o.stats_path}: {exc.strerror}", file=sys.stderr)
                 raise typer.Exit(code=2) from None
+
+
+def write_stats(path: Path, stats: dict) -> None:
+    import json
+
+    from .state import write_json_atomically
+
+    write_json_atomically(path, json.loads(json.dumps(stats, default=float)))
 
 
 def main() -> None:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
-import math
 import time
 from collections.abc import Callable
 
@@ -134,6 +133,3 @@ class Answers:
         elif repeat and self._last_frame is not None:
             asyncio.get_running_loop().call_soon(self._write, self._last_frame)
 
-
-NO_COMMAND = [math.nan] * 8
-"""Controls of an answer that commands nothing."""

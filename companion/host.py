@@ -1,12 +1,13 @@
-"""Several agents in one companion process: one asyncio loop and one Zenoh session.
+"""A companion process: one asyncio loop, one Zenoh session, one control loop, and the agents it flies.
 
-On a drone the companion flies one agent, and that stays the default. To simulate a large swarm
-on one machine, a process can fly several: each agent keeps everything of its own (a
-``Companion`` each: its MAVLink links, signing key, liveliness token, state folder, counters and
-mission), and only the loop and the Zenoh session are shared. Agents of one process hear each
-other through the session without a network hop, and one wake-up of the loop serves every agent
-whose telemetry came; per agent, that saves the context switches and the Zenoh runtime of a
-process of its own, which cost more than the control itself (``make bench``).
+On a drone the companion flies one agent, and that stays the default. To simulate a large swarm on
+one machine, a process can fly several (repeat ``--id``, ``--fc`` and ``--gcs``): each agent keeps
+everything of its own (its MAVLink links, signing key, liveliness token, state folder, counters
+and mission), while the process shares what costs the same for one agent or a hundred: the loop
+and its wake-ups, the Zenoh session, the table of the agents' newest estimates (an agent's
+neighbours in the same process read its estimate with no network hop), one controller per design
+with a row for each agent that flies it, and the control loop, which ticks every agent whose
+sample came in one pass (``loop.py``).
 """
 
 from __future__ import annotations
@@ -14,56 +15,93 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 
-from .companion import Companion, CompanionOptions, zenoh_config
+from triswarm.protocol.controller import FormationController
+from triswarm.protocol.plan import PlanError, plan_from_dict
+
+from .agent import Agent, CompanionOptions
+from .bus import Bus, default_config, open_session, peer_config, tune
+from .loop import ControlLoop
+
+WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m": 1.0, "altitude_m": 1.0, "rate_rad_s": 0.0}}
 
 
-class SharedZenoh:
-    """The session of a process's agents, opened when the first of them needs it."""
+def zenoh_config(o: CompanionOptions, agents: frozenset[int], n_agents: int):
+    """The Zenoh configuration of a process flying ``agents``: the file, the endpoints given, or
+    peers on loopback (``bus.default_config``)."""
+    import zenoh
 
-    def __init__(self, opts: CompanionOptions, agents: frozenset[int]) -> None:
-        self.opts, self.agents = opts, agents
-        self._session = None
-
-    def session(self, n_agents: int):
-        if self._session is None:
-            from .bus import open_session
-
-            self._session = open_session(zenoh_config(self.opts, self.agents, n_agents))
-        return self._session
-
-    def close(self) -> None:
-        if self._session is not None:
-            self._session.close()
-            self._session = None
+    if o.zenoh_config is not None:
+        try:
+            return tune(zenoh.Config.from_file(str(o.zenoh_config)))
+        except Exception as exc:  # zenoh raises its own error type for a bad file
+            raise PlanError(f"{o.zenoh_config}: not a usable Zenoh configuration ({exc})") from None
+    if o.zenoh_listen or o.zenoh_connect:
+        return peer_config(list(o.zenoh_listen), list(o.zenoh_connect), o.zenoh_mode)
+    return default_config(agents, n_agents, o.zenoh_base_port)
 
 
 def agent_options(opts: CompanionOptions, agents: list[tuple[int, str, str]]) -> list[CompanionOptions]:
     """Each agent's options: ``opts`` with its id, links, and {id} in paths replaced by its id."""
-    def own(path):
+    def own(path, agent):
         return None if path is None else type(path)(str(path).replace("{id}", str(agent)))
 
-    out = []
-    for agent, fc_url, gcs_url in agents:
-        out.append(dataclasses.replace(opts, agent=agent, fc_url=fc_url, gcs_url=gcs_url,
-                                       state_dir=own(opts.state_dir), stats_path=own(opts.stats_path)))
-    return out
+    return [dataclasses.replace(opts, agent=agent, fc_url=fc_url, gcs_url=gcs_url, state_dir=own(opts.state_dir, agent),
+                                stats_path=own(opts.stats_path, agent)) for agent, fc_url, gcs_url in agents]
+
+
+class Host:
+    def __init__(self, options: list[CompanionOptions]) -> None:
+        self.options = options
+        self._session = None
+        self._buses: dict[str, Bus] = {}
+        self._controllers: dict[tuple, tuple] = {}
+
+    def bus(self, swarm: str, n_agents: int) -> Bus:
+        """The process's bus for ``swarm`` (opened on the process's session the first time)."""
+        bus = self._buses.get(swarm)
+        if bus is None:
+            if self._session is None:
+                agents = frozenset(o.agent for o in self.options)
+                self._session = open_session(zenoh_config(self.options[0], agents, n_agents))
+            bus = self._buses[swarm] = Bus(swarm, n_agents)
+            bus.open(self._session, self.loop)
+            self.loop_ctl.watch(bus)
+        bus.n_agents = max(bus.n_agents, n_agents)
+        return bus
+
+    def controller(self, design, rate_hz: float, adaptation_1_s: float) -> FormationController:
+        """The controller of ``design``: one row per agent of the process (an agent's row is its
+        place in the process's list)."""
+        key = (id(design), rate_hz, adaptation_1_s)
+        found = self._controllers.get(key)
+        if found is None:
+            ctrl = FormationController(design, len(self.options), rate_hz, thrust_adaptation_rate_1_s=adaptation_1_s)
+            found = self._controllers[key] = (design, ctrl)  # (the design kept: its id stays its own)
+        return found[1]
+
+    async def run(self, stop: asyncio.Event) -> list[dict]:
+        """Fly every agent until ``stop``; if one cannot start or fails, stop them all and raise its
+        error. Returns each agent's stats, in order."""
+        self.loop = asyncio.get_running_loop()
+        self.loop_ctl = ControlLoop(self.loop)
+        agents = [Agent(o, self, row) for row, o in enumerate(self.options)]
+        # the kernels now, not when a plan starts (a first compile takes seconds)
+        FormationController.warm_up(plan_from_dict(WARM_UP_PLAN).design, self.options[0].rate_hz)
+        tasks = [asyncio.create_task(a.run(stop)) for a in agents]
+        for t in tasks:
+            t.add_done_callback(lambda t: t.cancelled() or t.exception() is None or stop.set())
+        try:
+            results = await asyncio.gather(*tasks, return_exceptions=True)
+        finally:
+            for bus in self._buses.values():
+                bus.close()
+            if self._session is not None:
+                self._session.close()
+        for r in results:
+            if isinstance(r, BaseException):
+                raise r
+        return results
 
 
 async def run_agents(options: list[CompanionOptions], stop: asyncio.Event) -> list[dict]:
-    """Fly every agent until ``stop``; if one cannot start or fails, stop them all and raise its
-    error. Returns each agent's stats, in order."""
-    if len(options) == 1:
-        return [await Companion(options[0]).run(stop)]
-    shared = SharedZenoh(options[0], frozenset(o.agent for o in options))
-    companions = [Companion(o, shared) for o in options]
-    tasks = [asyncio.create_task(c.run(stop)) for c in companions]
-    for t in tasks:
-        t.add_done_callback(lambda t: t.cancelled() or t.exception() is None or stop.set())
-    try:
-        results = await asyncio.gather(*tasks, return_exceptions=True)
-    finally:
-        shared.close()
-    for r in results:
-        if isinstance(r, BaseException):
-            raise r
-    return results
+    return await Host(options).run(stop)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
 from .design import Design
 
 
@@ -51,8 +52,18 @@ def consensus_error(xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.nda
 
 def protocol_input(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray,
                    pinning: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
-    """(72): v (N, 6) for agents with estimates-minus-offsets xi (N, 12)."""
-    return d.c * consensus_error(xi, neighbour_sum, in_degree, pinning, x0) @ d.K.T + gamma
+    """(72): v (N, 6) for agents with estimates-minus-offsets xi (N, 12): c K times
+    ``consensus_error``, plus gamma. (Compiled row by row: an agent's v is the same bits whether
+    it is computed alone or with others.)"""
+    xi = np.ascontiguousarray(xi, dtype=float)
+    n = xi.shape[0]
+    out = np.empty((n, d.K.shape[0]))
+    kernels.protocol_rows(d.cK, xi, np.ascontiguousarray(np.broadcast_to(neighbour_sum, xi.shape), dtype=float),
+                          np.ascontiguousarray(np.broadcast_to(in_degree, (n,)), dtype=float),
+                          np.ascontiguousarray(np.broadcast_to(pinning, (n,)), dtype=float),
+                          np.ascontiguousarray(np.broadcast_to(x0, xi.shape), dtype=float),
+                          np.ascontiguousarray(np.broadcast_to(gamma, (n, d.K.shape[0])), dtype=float), out)
+    return out
 
 
 _ORIGIN = np.zeros(12)

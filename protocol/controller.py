@@ -80,8 +80,8 @@ class FormationController:
         at the first tick in the air: a first compile takes seconds, a cache load some 300 ms."""
         scratch = FormationController(design, 1, rate_hz)
         scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
-        scratch.observe(np.r_[np.zeros(5), 1.0][None, :])
-        scratch.actuate(np.zeros((1, 6)))
+        scratch.observe(np.r_[np.zeros(5), 1.0][None, :], [0])
+        scratch.actuate(np.zeros((1, 6)), [0])
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0)) -> None:
@@ -118,24 +118,23 @@ class FormationController:
         self.z: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self.thrust_scale = np.ones(self.n)
+        self._all_rows = np.arange(self.n, dtype=np.int64)
 
     # -- state ---------------------------------------------------------------------------------
 
     def reset(self, x: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Start from the measured state x of (28), e.g. at rest on the ground: (N, 12), or
         (len(rows), 12) to restart only those agents (the others keep their state)."""
-        if rows is None or self.z is None:
-            rows = np.arange(self.n)
-            if self.z is None:
-                self.z = np.zeros((self.n, self.n_z))
-                self._y_prev = np.zeros((self.n, 6))
-                self._fresh = np.ones(self.n, dtype=np.bool_)
-                self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
-                self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
-                self._v_applied = np.zeros((self.n, 6))
-                self._z_pred = np.zeros((self.n, self.n_z))
-                self.initial_actuation = Actuation(np.zeros((self.n, 3)), np.zeros((self.n, 3)))
-        rows = np.asarray(rows, dtype=int)
+        if self.z is None:
+            self.z = np.zeros((self.n, self.n_z))
+            self._y_prev = np.zeros((self.n, 6))
+            self._fresh = np.ones(self.n, dtype=np.bool_)
+            self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
+            self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
+            self._v_applied = np.zeros((self.n, 6))
+            self._z_pred = np.zeros((self.n, self.n_z))
+            self.initial_actuation = Actuation(np.zeros((self.n, 3)), np.zeros((self.n, 3)))
+        rows = self._rows(rows)
         x = np.asarray(x, dtype=float).reshape(rows.size, 12)
         self.z[rows] = 0.0
         self.z[rows, :12] = self.rfl.phi_r(x)
@@ -165,47 +164,60 @@ class FormationController:
         return self.z[:, :12].copy()
 
     # -- one tick ------------------------------------------------------------------------------
+    #
+    # Each call takes the agents it acts on as ``rows`` (indices, default: every agent), so one
+    # controller serves agents whose samples come at different moments (a companion process's
+    # agents); the other rows are left exactly as they were.
 
-    def observe(self, y: np.ndarray) -> np.ndarray:
-        """Take y = (eta [rad], lambda [m]) (N, 6) at t; return the estimate of x_r at t + lead_s.
+    def _rows(self, rows) -> np.ndarray:
+        if rows is None:
+            return self._all_rows
+        return np.asarray(rows, dtype=np.int64).reshape(-1)
+
+    def observe(self, y: np.ndarray, rows=None) -> np.ndarray:
+        """Take y = (eta [rad], lambda [m]) (len(rows), 6) at t; return the estimate of x_r at
+        t + lead_s of those rows.
 
         Rows of y that are not finite are treated as missing: the estimate runs on the model."""
         if self.z is None:
             raise RuntimeError("FormationController.observe before reset")
-        y = np.ascontiguousarray(y, dtype=float).reshape(self.n, 6)
-        kernels.observe(self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi, self._Gv, self._Gy0,
+        rows = self._rows(rows)
+        y = np.ascontiguousarray(y, dtype=float).reshape(rows.size, 6)
+        kernels.observe(rows, self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi, self._Gv, self._Gy0,
                         self._Gy1, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe, self._z_pred)
-        return self._z_pred[:, :12].copy()
+        return self._z_pred[rows, :12]
 
-    def actuate(self, v: np.ndarray) -> Actuation:
-        """Turn the protocol input v (N, 6) for t + lead_s into the commands to send now."""
-        v = np.ascontiguousarray(v, dtype=float).reshape(self.n, 6)
-        v_out = np.empty((self.n, 6))
-        omega = np.empty((self.n, 3))
-        alpha = np.empty((self.n, 3))
+    def actuate(self, v: np.ndarray, rows=None) -> Actuation:
+        """Turn the protocol input v (len(rows), 6) for t + lead_s into the commands to send now."""
+        rows = self._rows(rows)
+        v = np.ascontiguousarray(v, dtype=float).reshape(rows.size, 6)
+        v_out = np.empty((rows.size, 6))
+        omega = np.empty((rows.size, 3))
+        alpha = np.empty((rows.size, 3))
         r = self.rfl
-        kernels.actuate(self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
+        kernels.actuate(rows, self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, MAX_PITCH_RAD,
                         self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], v_out, omega, alpha)
-        return Actuation(self._push(v_out, omega), alpha)
+        return Actuation(self._push(rows, v_out, omega), alpha)
 
-    def _push(self, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
-        """Commit v (and its rotor speeds) to the pipe; return the rotor speeds to send now."""
+    def _push(self, rows: np.ndarray, v: np.ndarray, omega: np.ndarray | None) -> np.ndarray | None:
+        """Commit v (and its rotor speeds) of ``rows`` to the pipe; return the rotor speeds to send now."""
         if not self.lead_ticks:
-            self._v_applied = v
+            self._v_applied[rows] = v
             return omega
-        self._v_applied = self._v_pipe[0].copy()
-        self._v_pipe[:-1] = self._v_pipe[1:]
-        self._v_pipe[-1] = v
-        omega_now = self._motor_pipe[0].copy()
-        self._motor_pipe[:-1] = self._motor_pipe[1:]
-        self._motor_pipe[-1] = omega
+        self._v_applied[rows] = self._v_pipe[0, rows]
+        self._v_pipe[:-1, rows] = self._v_pipe[1:, rows]
+        self._v_pipe[-1, rows] = v
+        omega_now = self._motor_pipe[0, rows]
+        self._motor_pipe[:-1, rows] = self._motor_pipe[1:, rows]
+        if omega is not None:
+            self._motor_pipe[-1, rows] = omega
         return omega_now
 
-    def hold_tick(self, y: np.ndarray) -> None:
+    def hold_tick(self, y: np.ndarray, rows=None) -> None:
         """A control period in which no new command went out (the loop fell behind): take the
         measurement, and record that the actuators kept the last command."""
-        self.observe(y)
-        last_v = self._v_pipe[-1].copy() if self.lead_ticks else self._v_applied.copy()
-        last_w = self._motor_pipe[-1].copy() if self.lead_ticks else None
-        self._push(last_v, last_w)
+        rows = self._rows(rows)
+        self.observe(y, rows)
+        last_v = self._v_pipe[-1, rows] if self.lead_ticks else self._v_applied[rows]
+        self._push(rows, last_v.copy(), None)

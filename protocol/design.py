@@ -10,9 +10,11 @@ be Hurwitz (the paper's (77) "A_r + c F C_r" with its F = -ours).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
+from . import kernels
 from .airframe import ParameterError
 from .graph import Schedule
 from .rfl import RFL
@@ -99,6 +101,11 @@ class Design:
     def estimates_disturbance(self) -> bool:
         return self.F_aug is not None
 
+    @cached_property
+    def cK(self) -> np.ndarray:
+        """c K, the feedback gain of (72) (kept: the protocol uses it every tick)."""
+        return np.ascontiguousarray(self.c * self.K)
+
     def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented
         with the disturbance state d (x_r rows 1-6 get + d, d_dot = 0)."""
@@ -148,7 +155,11 @@ class Design:
 
     def gamma(self, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
         """(78): gamma_i = B_tilde (h_dot_i - A_r h_i), for h, h_dot (..., 12)."""
-        return (h_dot - h @ self.A_r.T) @ self.B_tilde.T
+        h, h_dot = np.broadcast_arrays(np.asarray(h, dtype=float), np.asarray(h_dot, dtype=float))
+        flat_h = np.ascontiguousarray(h.reshape(-1, h.shape[-1]))
+        out = np.empty((flat_h.shape[0], self.B_tilde.shape[0]))
+        kernels.gamma_rows(self.A_r, self.B_tilde, flat_h, np.ascontiguousarray(h_dot.reshape(flat_h.shape)), out)
+        return out.reshape(h.shape[:-1] + (self.B_tilde.shape[0],))
 
 
 def left_inverse_pair(B_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

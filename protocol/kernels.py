@@ -75,29 +75,31 @@ def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
 
 
 @numba.njit(cache=True)
-def observe(z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred):
-    """One observer step per row (FOH on y, ZOH on v) then the prediction over the pipe.
-    A row whose measurement is not finite runs the open-loop model instead; a fresh row (just
-    reset at this instant) only takes the measurement. Updates z, y_prev, fresh, z_pred."""
-    n, nz = z.shape
+def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred):
+    """One observer step for each agent row in ``rows`` (FOH on y, ZOH on v), then the prediction
+    over the pipe; y[k] is row rows[k]'s measurement. A row whose measurement is not finite runs
+    the open-loop model instead; a fresh row (just reset at this instant) only takes the
+    measurement. Updates z, y_prev, fresh, z_pred of those rows."""
+    nz = z.shape[1]
     tmp = np.empty(nz)
-    for i in range(n):
+    for k in range(rows.shape[0]):
+        i = rows[k]
         ok = True
-        for k in range(y.shape[1]):
-            if not math.isfinite(y[i, k]):
+        for c in range(y.shape[1]):
+            if not math.isfinite(y[k, c]):
                 ok = False
         if fresh[i]:
             fresh[i] = False
             if ok:
-                y_prev[i, :] = y[i, :]
+                y_prev[i, :] = y[k, :]
         else:
             tmp[:] = 0.0
             if ok:
                 _matvec_add(Phi, z[i], tmp)
                 _matvec_add(Gv, v_applied[i], tmp)
                 _matvec_add(Gy0, y_prev[i], tmp)
-                _matvec_add(Gy1, y[i], tmp)
-                y_prev[i, :] = y[i, :]
+                _matvec_add(Gy1, y[k], tmp)
+                y_prev[i, :] = y[k, :]
             else:
                 _matvec_add(Phi1, z[i], tmp)
                 _matvec_add(G1, v_applied[i], tmp)
@@ -109,24 +111,26 @@ def observe(z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Ph
 
 
 @numba.njit(cache=True)
-def actuate(z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
+def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
             kappa, adapt_k, k_lo, k_hi, v_out, omega, alpha):
-    """Per row: cancel the estimated disturbance, predict half a period on, RFL, adapt and apply
-    the thrust scale kappa, actuator inverse. Writes v_out (the v committed), omega, alpha; updates
-    kappa in place. z is the observer state: with adaptation (adapt_k > 0, which needs a disturbance
-    estimate) columns 12-14 are the translational disturbance."""
-    n, nz = z_pred.shape
+    """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
+    predict half a period on, RFL, adapt and apply the thrust scale kappa, actuator inverse.
+    Writes v_out (the v committed), omega, alpha (indexed like v_in); updates kappa in place. z is
+    the observer state: with adaptation (adapt_k > 0, which needs a disturbance estimate) columns
+    12-14 are the translational disturbance."""
+    nz = z_pred.shape[1]
     zm = np.empty(nz)
     u = np.empty(6)
     yd = np.empty(6)
-    for i in range(n):
-        v_out[i, :] = v_in[i, :]
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        v_out[k, :] = v_in[k, :]
         if use_dist:
-            _matvec_add(Einv, z_pred[i, 12:18], v_out[i], -1.0)
+            _matvec_add(Einv, z_pred[i, 12:18], v_out[k], -1.0)
         zm[:] = 0.0
         _matvec_add(half_Phi, z_pred[i], zm)
-        _matvec_add(half_G, v_out[i], zm)
-        rfl_xr_row(zm[:12], v_out[i], L, M0, I, Ii, G_inv, g, max_pitch, u, yd)
+        _matvec_add(half_G, v_out[k], zm)
+        rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, max_pitch, u, yd)
         if adapt_k > 0.0:
             a0, a1, a2 = yd[3], yd[4], yd[5] + g
             norm2 = a0 * a0 + a1 * a1 + a2 * a2
@@ -135,5 +139,40 @@ def actuate(z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_i
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
         for j in range(3):
             s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
-            omega[i, j] = math.sqrt(math.hypot(s, c))
-            alpha[i, j] = math.atan2(s, c)
+            omega[k, j] = math.sqrt(math.hypot(s, c))
+            alpha[k, j] = math.atan2(s, c)
+
+
+@numba.njit(cache=True)
+def gamma_rows(A_r, B_tilde, h, h_dot, out):
+    """(78) for each row: out[i] = B_tilde (h_dot[i] - A_r h[i]). Written out (not BLAS) so that a
+    row's result does not depend on how many rows are computed with it."""
+    n, nx = h.shape
+    e = np.empty(nx)
+    for i in range(n):
+        for r in range(nx):
+            acc = h_dot[i, r]
+            for c in range(nx):
+                acc -= A_r[r, c] * h[i, c]
+            e[r] = acc
+        for r in range(B_tilde.shape[0]):
+            acc = 0.0
+            for c in range(nx):
+                acc += B_tilde[r, c] * e[c]
+            out[i, r] = acc
+
+
+@numba.njit(cache=True)
+def protocol_rows(cK, xi, neighbour_sum, in_degree, pinning, x0, gamma, out):
+    """(72) for each row: out[i] = c K (sum_j a_ij xi_j - (d_i + g_i) xi_i + g_i x0_i) + gamma_i,
+    with ``cK`` = c K. Written out, as ``gamma_rows``."""
+    n, nx = xi.shape
+    e = np.empty(nx)
+    for i in range(n):
+        for c in range(nx):
+            e[c] = neighbour_sum[i, c] - (in_degree[i] + pinning[i]) * xi[i, c] + pinning[i] * x0[i, c]
+        for r in range(cK.shape[0]):
+            acc = gamma[i, r]
+            for c in range(nx):
+                acc += cK[r, c] * e[c]
+            out[i, r] = acc

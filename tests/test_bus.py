@@ -46,12 +46,13 @@ def test_estimates_status_garbage_and_liveliness(swarm):
 
     async def scenario():
         loop = asyncio.get_running_loop()
-        one = Bus(swarm, 1, PLAN, frozenset(), 3)
-        two = Bus(swarm, 2, PLAN, frozenset({1}), 3)
+        one, two = Bus(swarm, 3), Bus(swarm, 3)
         woke = []
-        two.on_estimate = lambda: woke.append(time.monotonic())
+        two.on_estimates = lambda: woke.append(time.monotonic())
         one.open(default_config(1, 3, base), loop)
         two.open(default_config(2, 3, base), loop)
+        one.join(1, PLAN, frozenset())
+        two.join(2, PLAN, frozenset({1}))
         # a third party on the same bus (agent 3's port), for garbage
         other = zenoh.open(peer_config([f"tcp/127.0.0.1:{base + 3}"],
                                        [f"tcp/127.0.0.1:{base + 1}", f"tcp/127.0.0.1:{base + 2}"]))
@@ -59,24 +60,26 @@ def test_estimates_status_garbage_and_liveliness(swarm):
             assert await until(lambda: 1 in two.alive, 10.0, [one, two]), "agent 2 never saw agent 1's liveliness"
 
             # a valid estimate arrives bit for bit, with its header
-            assert await until(lambda: (one.publish_estimate(XI, 1.0, AgentStatus.FLYING) or True)
-                               and two.neighbours[1].heard, 10.0, [two])
-            nb = two.neighbours[1]
+            assert await until(lambda: (one.publish_estimate(1, XI, 1.0, AgentStatus.FLYING) or True)
+                               and two.estimates[1].heard, 10.0, [two])
+            nb = two.estimates[1]
             np.testing.assert_array_equal(nb.xi, XI)
-            assert nb.t_plan_s == 1.0 and nb.status == AgentStatus.FLYING and 1 <= nb.seq <= one.seq
+            assert nb.t_plan_s == 1.0 and nb.status == AgentStatus.FLYING and 1 <= nb.seq <= one.members[1].seq
+            assert nb.plan_id == PLAN
 
             # while the loop waits, an estimate wakes it by itself (no drain called here)
             two.waiting, woke[:] = True, []
             t0 = time.monotonic()
-            one.publish_estimate(XI * 2, 2.0, AgentStatus.FLYING)
+            one.publish_estimate(1, XI * 2, 2.0, AgentStatus.FLYING)
             deadline = time.monotonic() + 2.0
             while not woke and time.monotonic() < deadline:
                 await asyncio.sleep(0.001)
             two.waiting = False
             assert woke, "an awaited estimate did not wake the loop"
             assert woke[0] - t0 < 0.5
-            assert two.ready([1], 2.0, 0.0) and not two.ready([1], 2.1, 0.0)
-            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 2)
+            assert two.ready([1], 2.0, 0.0, (PLAN,)) and not two.ready([1], 2.1, 0.0, (PLAN,))
+            assert not two.ready([1], 2.0, 0.0, (PLAN + 1,))  # (another plan's agent would not take it)
+            np.testing.assert_array_equal(two.estimates[1].xi, XI * 2)
 
             # garbage on agent 1's keys: every kind dropped and counted, none taken
             before = two.counts()
@@ -106,20 +109,21 @@ def test_estimates_status_garbage_and_liveliness(swarm):
             for k, n in expected.items():
                 assert after.get(k, 0) - before.get(k, 0) == n, k
             assert after["estimates"] == before["estimates"]  # nothing taken
-            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 2)
-            assert two.statuses.get(1) != AgentStatus.HOLDING
+            np.testing.assert_array_equal(two.estimates[1].xi, XI * 2)
+            assert two.status_of(1, (PLAN,)) != AgentStatus.HOLDING
             token.undeclare()
 
             # a valid estimate still gets through, and a restarted sender (sequence from 1 again,
             # plan time going on) is not mistaken for an old one
-            one.seq = 0
-            assert await until(lambda: (one.publish_estimate(XI * 3, 4.0, AgentStatus.FLYING) or True)
-                               and two.neighbours[1].t_plan_s == 4.0, 10.0, [two])
-            np.testing.assert_array_equal(two.neighbours[1].xi, XI * 3)
+            one.members[1].seq = 0
+            assert await until(lambda: (one.publish_estimate(1, XI * 3, 4.0, AgentStatus.FLYING) or True)
+                               and two.estimates[1].t_plan_s == 4.0, 10.0, [two])
+            np.testing.assert_array_equal(two.estimates[1].xi, XI * 3)
 
             # status: agent 1 says it holds
-            one.publish_status(AgentStatus.HOLDING, "test")
-            assert await until(lambda: two.statuses.get(1) == AgentStatus.HOLDING, 10.0, [two])
+            one.publish_status(1, AgentStatus.HOLDING, "test")
+            assert await until(lambda: two.status_of(1, (PLAN,)) == AgentStatus.HOLDING, 10.0, [two])
+            assert two.status_of(1, (PLAN + 1,)) is None  # said of another plan: not of this one
 
             # agent 1 goes away: its liveliness goes within the lease (1 s) and some slack
             one.close()
@@ -154,15 +158,16 @@ def test_shipped_configs_client_through_a_router(swarm):
     async def scenario():
         loop = asyncio.get_running_loop()
         router = zenoh.open(deploy_config("router.json5", listen=here))
-        one = Bus(swarm, 1, PLAN, frozenset(), 2)
-        two = Bus(swarm, 2, PLAN, frozenset({1}), 2)
+        one, two = Bus(swarm, 2), Bus(swarm, 2)
         try:
             one.open(deploy_config("companion-client.json5", connect=here), loop)
             two.open(deploy_config("companion-client.json5", connect=here), loop)
+            one.join(1, PLAN, frozenset())
+            two.join(2, PLAN, frozenset({1}))
             assert await until(lambda: 1 in two.alive, 10.0, [one, two])
-            assert await until(lambda: (one.publish_estimate(XI, 5.0, AgentStatus.FLYING) or True)
-                               and two.neighbours[1].heard, 10.0, [two])
-            np.testing.assert_array_equal(two.neighbours[1].xi, XI)
+            assert await until(lambda: (one.publish_estimate(1, XI, 5.0, AgentStatus.FLYING) or True)
+                               and two.estimates[1].heard, 10.0, [two])
+            np.testing.assert_array_equal(two.estimates[1].xi, XI)
         finally:
             one.close()
             two.close()

@@ -347,19 +347,20 @@ def test_two_routers_forward_between_them_and_each_enforces(tmp_path, clients):
 def test_the_companion_bus_on_generated_configs(swarm, router):
     async def scenario():
         loop = asyncio.get_running_loop()
-        one = Bus(swarm.name, 1, PLAN, frozenset({2}), 2)
-        two = Bus(swarm.name, 2, PLAN, frozenset({1}), 2)
+        one, two = Bus(swarm.name, 2), Bus(swarm.name, 2)
         try:
             # as triswarm-companion --zenoh-config agent-<i>.json5 does
             one.open(tune(swarm.config("agent-1")), loop)
             two.open(tune(swarm.config("agent-2")), loop)
+            one.join(1, PLAN, frozenset({2}))
+            two.join(2, PLAN, frozenset({1}))
             assert await until(lambda: 1 in two.alive and 2 in one.alive, 10.0, [one, two])
-            assert await until(lambda: (one.publish_estimate(XI, 1.0, AgentStatus.FLYING) or True)
-                               and two.neighbours[1].heard, 10.0, [two])
-            np.testing.assert_array_equal(two.neighbours[1].xi, XI)
-            assert await until(lambda: (two.publish_estimate(XI * 2, 1.0, AgentStatus.FLYING) or True)
-                               and one.neighbours[2].heard, 10.0, [one])
-            np.testing.assert_array_equal(one.neighbours[2].xi, XI * 2)
+            assert await until(lambda: (one.publish_estimate(1, XI, 1.0, AgentStatus.FLYING) or True)
+                               and two.estimates[1].heard, 10.0, [two])
+            np.testing.assert_array_equal(two.estimates[1].xi, XI)
+            assert await until(lambda: (two.publish_estimate(2, XI * 2, 1.0, AgentStatus.FLYING) or True)
+                               and one.estimates[2].heard, 10.0, [one])
+            np.testing.assert_array_equal(one.estimates[2].xi, XI * 2)
             assert two.counts().get("drop_unknown_agent", 0) == 0
         finally:
             one.close()

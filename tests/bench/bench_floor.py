@@ -45,7 +45,7 @@ def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: flo
             loop.add_signal_handler(sig, stop.set)
         link = MavLink("fc", fc_url, agent, COMP_ONBOARD)
         listen_to = frozenset((agent - 1 - k) % n + 1 for k in range(1, min(NEIGHBOURS, n - 1) + 1))
-        bus = Bus("floor", agent, 1, listen_to, n)
+        bus = Bus("floor", n)
         xi = np.zeros(12)
         controls = [0.3, 0.3, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0]
         samples = []
@@ -56,7 +56,7 @@ def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: flo
                     samples.append(t_rx)
                     if zenoh:
                         bus.take_estimates()
-                        bus.publish_estimate(xi, m.time_boot_ms / 1000.0, AgentStatus.FLYING)
+                        bus.publish_estimate(agent, xi, m.time_boot_ms / 1000.0, AgentStatus.FLYING)
                     link.send(mavlink.MAVLink_set_actuator_control_target_message(int(time.time() * 1e6), 0, agent, 1,
                                                                                   controls))
 
@@ -65,6 +65,7 @@ def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: flo
             config = (default_config(agent, n, zenoh_base_port) if router_port is None else
                       peer_config([], [f"tcp/127.0.0.1:{router_port}", f"udp/127.0.0.1:{router_port}"], mode="client"))
             bus.open(config, loop)
+            bus.join(agent, 1, listen_to)
         interval_us = 1e6 / rate_hz
         for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
             link.send(mavlink.MAVLink_command_long_message(agent, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
@@ -73,7 +74,8 @@ def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: flo
             await stop.wait()
         finally:
             link.close()
-            bus.close()
+            if zenoh:
+                bus.close()
         recent = [t for t in samples if t > time.time() - 5.0]
         print(json.dumps({"agent": agent, "sample_rate_hz": len(recent) / 5.0,
                           "estimates": bus.counters.get("estimates", 0)}), flush=True)

@@ -1,0 +1,320 @@
+"""One agent of a companion process: one drone's formation controller between its flight controller
+and its neighbours, made of rooms that each have one job:
+
+- ``autopilot.Autopilot``: the flight controller (link, state, clock, telemetry, commands);
+- ``ground_station.GroundStation``: the ground station (link, routing, parameters, commands);
+- ``plan_server.PlanServer``: plans up and down the ground-station link (the mission protocol);
+- ``plans.Plans``: the plan in force, the one staged, leader moves, kept across restarts;
+- ``flight.Flight``: the phase, the entry, hold and rejoin, who counts;
+- ``health.LoopHealth``: loop timing and the formation error, reported once a second;
+
+while the process (``host.Host``) gives every agent its share of the Zenoh bus, a row of the
+controller of its plan's design, and the control loop (``loop.ControlLoop``) that ticks it.
+
+Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time, and
+every wait and timeout of the mission runs on that clock (``clock.py``), so the same code flies on a
+simulator's clock in lockstep.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from triswarm.protocol import model
+from triswarm.protocol.airframe import TABLE_1
+from triswarm.protocol.formation import RelativeTo
+from triswarm.protocol.mavlink import mavlink, read_signing_key
+
+from .autopilot import Autopilot
+from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
+from .ground_station import GroundStation, Params
+from .health import LoopHealth
+from .plan_server import PlanServer
+from .plans import Plans
+from .state import StateStore
+
+log = logging.getLogger("triswarm.companion")
+
+IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
+
+
+class StartupError(Exception):
+    """The companion cannot start as asked (a link it cannot open, an unreadable signing key, a Zenoh
+    session it cannot open): one sentence for the operator, exit status 2."""
+
+
+class AgentLog(logging.LoggerAdapter):
+    """The companion's log, each line naming its agent (several agents may share a process)."""
+
+    def process(self, msg, kwargs):
+        prefix = f"companion {self.extra['agent']}: "
+        return (msg if str(msg).startswith(prefix) else prefix + str(msg)), kwargs
+
+
+@dataclass(frozen=True)
+class CompanionOptions:
+    agent: int
+    fc_url: str
+    gcs_url: str
+    plan_path: Path | None = None
+    autostart: bool = False
+    start_at_unix_s: float | None = None
+    zenoh_config: Path | None = None
+    zenoh_listen: tuple[str, ...] = ()
+    zenoh_connect: tuple[str, ...] = ()
+    zenoh_mode: str = "peer"
+    zenoh_base_port: int = 17447
+    rate_hz: float = 200.0
+    state_dir: Path | None = None
+    swarm: str | None = None
+    stats_path: Path | None = None
+    signing_key_path: Path | None = None
+
+
+class Agent:
+    """``host``: the process (its bus, controllers and loop); ``row``: this agent's row in them."""
+
+    def __init__(self, opts: CompanionOptions, host, row: int) -> None:
+        self.opts, self.host, self.row = opts, host, row
+        self.id = opts.agent
+        self.log = AgentLog(log, {"agent": opts.agent})
+        try:
+            key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
+        except ValueError as exc:  # (one sentence: the file and what is wrong with it)
+            raise StartupError(str(exc)) from None
+        self.store = StateStore(opts.state_dir)
+        self.params = Params(opts.rate_hz)
+        self.health = LoopHealth(1.0 / opts.rate_hz)
+        self.autopilot = Autopilot(self.id, opts.fc_url, self.log, self._fc_state)
+        self.autopilot.link.after_read = lambda: host.loop_ctl.due(self)
+        self.gcs = GroundStation(self, opts.gcs_url, key)
+        self.plans = Plans(self.id, self.store, self.autopilot.clock, self.log, self._reopen, self._schedule,
+                           lambda: self.flight.in_flight)
+        self.plan_server = PlanServer(lambda items: self.plans.receive(items, self.loop), self._clear_plans,
+                                      self.plans.held_items, self.say)
+        self.flight = Flight(self)
+        omega, alpha = model.hover_trim(TABLE_1)  # until a plan names the airframe
+        self.idle = (omega * IDLE_FRACTION, alpha)
+        self.bus = None
+        self.bank = None
+        """The controller of this agent's design (a row each for the process's agents), once a plan is open."""
+        self.design = None
+        self.listen_to: frozenset[int] = frozenset()
+        self.in_neighbours: dict[str, list[int]] = {}
+        self.in_weights: dict[str, list[tuple[int, float]]] = {}
+        self.plans_on_bus: tuple[int, ...] = ()
+        self.errors = 0
+
+    # -- what the rooms share ---------------------------------------------------------------------
+
+    @property
+    def lead_s(self) -> float:
+        return self.bank.lead_s
+
+    @property
+    def dt_s(self) -> float:
+        return self.bank.dt_s
+
+    @property
+    def plan_rfl(self):
+        return self.plans.plan.rfl
+
+    def plan_time(self, boot_ms: int) -> float:
+        return self.autopilot.clock.plan_time(boot_ms, self.plans.mission.start_unix_s)
+
+    def controller_reset(self, x: np.ndarray) -> None:
+        self.bank.reset(x[None, :], rows=np.array([self.row]))
+
+    def rejoin_source(self):
+        return RelativeTo(self.flight.hold, self.plans.leader)
+
+    def say(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """To the log and the ground station, as this companion."""
+        text = f"companion {self.id}: {text}"
+        self.log.info(text)
+        self.gcs.statustext(text, severity)
+
+    def tick_failed(self) -> None:
+        """A tick that raised: it costs one command, never the loop."""
+        self.errors += 1
+        if self.errors <= 3:
+            self.log.exception("tick failed")
+
+    def heartbeat(self):
+        status = {Phase.HOLDING: mavlink.MAV_STATE_CRITICAL, Phase.FLYING: mavlink.MAV_STATE_ACTIVE}.get(
+            self.flight.phase, mavlink.MAV_STATE_STANDBY)
+        return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                                                 mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PHASE_MODE[self.flight.phase],
+                                                 status, 3)
+
+    def publish_status(self) -> None:
+        """The phase on the bus, with why and since when."""
+        if self.bus is not None:
+            f = self.flight
+            self.bus.publish_status(self.id, PHASE_STATUS[f.phase], f.reason, f.since)
+
+    def _fc_state(self) -> None:
+        self.flight.check_release()
+
+    # -- a plan in force ------------------------------------------------------------------------
+
+    def open_plan(self) -> None:
+        """Fly the plan in force: this agent on its swarm's bus, its neighbours, its controller row."""
+        plan, i = self.plans.plan, self.id - 1
+        topologies = plan.schedule.topologies
+        self.listen_to = frozenset(int(j) + 1 for t in topologies for j in t.in_neighbours(i))
+        self.in_neighbours = {t.name: [int(j) + 1 for j in t.in_neighbours(i)] for t in topologies}
+        self.in_weights = {t.name: [(j, float(t.adjacency[i, j - 1])) for j in self.in_neighbours[t.name]]
+                           for t in topologies}
+        if self.bus is not None:
+            self.bus.leave(self.id)
+        self.bus = self.host.bus(self.opts.swarm or plan.name, plan.n_agents)
+        self.bus.join(self.id, self.plans.mission.plan_id, self.listen_to)
+        if self.autopilot.answers.lockstep:
+            self.bus.reliable_estimates()
+        self.plans_on_bus = self.bus.plans_of(self.id)
+        self.design = plan.design
+        self.bank = self.host.controller(plan.design, self.opts.rate_hz, plan.controller.thrust_adaptation_rate_1_s)
+        self.params.declare("COUPLING_C", plan.design.c)
+        omega, alpha = model.hover_trim(plan.airframe)
+        self.idle = (omega * IDLE_FRACTION, alpha)
+        self.flight.opened()
+        self.publish_status()
+
+    def _reopen(self, reopen: bool) -> None:
+        if reopen or self.bus is None:
+            self.open_plan()
+
+    def _schedule(self) -> None:
+        self.flight.schedule()
+
+    def switch_plan(self, t_plan: float) -> None:
+        """The plan to put in force in flight is due now."""
+        plan, pid = self.plans.take_switch()
+        self.bus.switch_plan(self.id, pid)
+        self.plans_on_bus = self.bus.plans_of(self.id)
+        self.params.declare("COUPLING_C", plan.design.c)
+        self.say(f"plan {plan.name} {pid:08x} in force")
+        self.flight.switched(t_plan)
+
+    def _clear_plans(self) -> tuple[int, str]:
+        code, reason = self.plans.clear()
+        if code == mavlink.MAV_MISSION_ACCEPTED:
+            self.flight.cancel_start()
+            self.flight.set_phase(Phase.IDLE, "")
+        return code, reason
+
+    # -- run --------------------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> dict:
+        self.loop = asyncio.get_running_loop()
+        self.plans.load(self.opts.plan_path)
+        self.gcs.restore_signing_streams()
+        tasks: list[asyncio.Task] = []
+        try:
+            try:
+                self.autopilot.link.open(self.loop, lambda link, msgs, t_rx: self.gcs.from_fc(msgs, t_rx))
+                self.gcs.link.open(self.loop, self.gcs.from_gcs)
+            except OSError as exc:  # (MavLink.open: one sentence naming the link and its URL)
+                raise StartupError(str(exc)) from None
+            if self.plans.plan is not None:
+                import zenoh
+
+                try:
+                    self.open_plan()
+                except zenoh.ZError as exc:  # e.g. a port to listen on that is taken
+                    raise StartupError(f"cannot open the Zenoh session: {exc}") from None
+            tasks.append(asyncio.create_task(self._every_second()))
+            tasks.append(asyncio.create_task(self._poll_plans()))
+            tasks.append(asyncio.create_task(self._mission_task()))
+            await stop.wait()
+        finally:  # stop ticking first, then the tasks, then the bus
+            for link in (self.autopilot.link, self.gcs.link):
+                link.close()
+            self.host.loop_ctl.forget(self)
+            start = self.flight.cancel_start()
+            if start is not None:
+                tasks.append(start)
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self.gcs.keep_signing_streams()
+            if self.bus is not None and "session" in self.bus.__dict__:
+                self.bus.leave(self.id)
+        return self.stats()
+
+    async def _mission_task(self) -> None:
+        try:
+            await self._mission()
+        except Exception as exc:  # the mission stops; the companion keeps routing and reporting
+            self.log.exception("mission stopped")
+            self.say(f"mission stopped: {exc}", mavlink.MAV_SEVERITY_ERROR)
+
+    async def _mission(self) -> None:
+        await self.autopilot.setup(self.opts.rate_hz, self.heartbeat)
+        if self.bus is not None and self.autopilot.answers.lockstep:
+            self.bus.reliable_estimates()
+        m = self.plans.mission
+        if m is None:
+            self.log.info(f"agent {self.id}: no plan; waiting for one")
+            return
+        now = self.autopilot.now_unix()
+        if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
+            self.say("resuming plan after restart")
+            await self.flight.resume()
+            return
+        if self.opts.autostart and m.phase != "done":
+            m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
+            m.phase = "scheduled"
+            self.plans.save()
+        if m.phase == "scheduled":
+            self.flight.schedule()
+
+    async def _poll_plans(self) -> None:
+        while True:
+            self.plan_server.poll(time.monotonic())
+            await asyncio.sleep(0.1)
+
+    async def _every_second(self) -> None:
+        while True:
+            hb = self.heartbeat()
+            for link in (self.autopilot.link, self.gcs.link):
+                link.send(hb)
+            self.gcs.tell_refusals()
+            self.gcs.keep_signing_streams()
+            if self.bus is not None:
+                report = self.health_report()
+                self.bus.publish_health(self.id, report)
+                self.publish_status()  # (whole again each second: a put may be lost on the way)
+                self.gcs.health_values(report)
+            await asyncio.sleep(1.0)
+
+    def health_report(self) -> dict:
+        now = time.time()
+        table = self.bus.estimates
+        ages = {j: (now - table[j].stamp_s if table[j].heard else math.inf) for j in sorted(self.listen_to)}
+        report = self.health.report(ages)
+        report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
+                      counters=self.bus.counts(), t=now)
+        return report
+
+    def stats(self) -> dict:
+        out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),
+               "tick_errors": self.errors,
+               "links": {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)}}
+        if self.bus is not None:
+            out["zenoh"] = self.bus.counts()
+        return out
+
+
+def default_start_time(now: float) -> float:
+    """Companions started together agree without talking: the next multiple of 10 s at least 5 s ahead."""
+    return math.ceil((now + 5.0) / 10.0) * 10.0
+

@@ -1,0 +1,310 @@
+"""The flight of one agent: its phase, what its reference follows, and the decisions that change
+them. Nothing here runs per tick but the path check; the tick itself is ``loop.py``'s.
+
+Phases: IDLE (no plan running), SCHEDULED (waiting for the common start time; armed shortly
+before it with ``--autostart``), FLYING (the entry, the formation, or on the way back into it),
+HOLDING (no path from the leader through the agents that are alive, flying and fresh: the drone
+brakes to a stop and holds, pinned to its own reference, until a path returns; then it rejoins).
+
+What the reference follows (``tracking``, a one-agent formation in offsets from the leader):
+the entry (climb from where the drone rests, then blend into its row of the formation), the
+formation itself, or a rejoin from wherever the drone was (a hold, a restart, the formation of
+the plan before) that decays into the formation over ``REJOIN_S`` seconds or longer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import math
+import time
+
+import numpy as np
+
+from triswarm.protocol import model
+from triswarm.protocol.codec import AgentStatus
+from triswarm.protocol.formation import Formation, QuinticTransfer, RelativeTo, Rejoin, Row, rejoin_duration
+from triswarm.protocol.mavlink import CustomMode, mavlink, mode_name
+
+ARM_LEAD_S = 2.0
+START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
+
+
+class Phase(enum.Enum):
+    IDLE = "idle"            # no plan running
+    SCHEDULED = "scheduled"  # waiting for the common start time (armed shortly before)
+    FLYING = "flying"        # in formation (or entering / rejoining it)
+    HOLDING = "holding"      # no path to the leader: holding position
+
+
+PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3}
+"""The companion's HEARTBEAT custom_mode in each phase."""
+PHASE_STATUS = {Phase.IDLE: AgentStatus.IDLE, Phase.SCHEDULED: AgentStatus.IDLE, Phase.FLYING: AgentStatus.FLYING,
+                Phase.HOLDING: AgentStatus.HOLDING}
+"""What the bus says of each phase."""
+
+
+class Flight:
+    """``agent``: the ``Agent`` whose flight this is (its autopilot, plans, bus, controller row,
+    parameters and voice)."""
+
+    def __init__(self, agent) -> None:
+        self.a = agent
+        self.phase = Phase.IDLE
+        self.reason = ""
+        self.since = agent.autopilot.now_unix()
+        """Why and since when [Unix s, the flight controller's clock] the phase is what it is."""
+        self.flying_since = -math.inf
+        self.tracking: Formation | None = None
+        """What this drone's reference follows now (entry, formation, rejoin...)."""
+        self.flying: Formation | None = None
+        """The formation being flown (the entry first): what a rejoin goes back into."""
+        self.hold: Formation | None = None
+        self.silent: dict[int, float] = {}
+        """Lockstep: the neighbours the watchdog counts absent, each with the instant [plan s] it had no
+        estimate for; absent until one for that instant or a later one comes."""
+        self._start_task: asyncio.Task | None = None
+        self._presence_base: tuple | None = None
+        self._paths: dict[tuple, bool] = {}
+        self.t_p = -math.inf  # the instant the newest tick's estimates refer to [plan s]
+
+    @property
+    def in_flight(self) -> bool:
+        return self.phase in (Phase.FLYING, Phase.HOLDING)
+
+    def set_phase(self, phase: Phase, reason: str) -> None:
+        if phase == self.phase:
+            return
+        now = self.a.autopilot.now_unix()
+        if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
+            self.flying_since = now
+        self.phase, self.reason, self.since = phase, reason, now
+        self.a.publish_status()
+        if phase == Phase.HOLDING:
+            self.a.say(f"holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
+        elif phase == Phase.FLYING:
+            self.a.say("in formation")
+
+    def mine(self, formation: Formation) -> Row:
+        """This agent's row of a swarm's formation: the references it flies (entry, rejoin, hold)
+        are one-agent formations."""
+        return Row(formation, self.a.id - 1)
+
+    def opened(self) -> None:
+        """A plan was opened (a new bus membership and controller row): forget the old one's caches."""
+        self._presence_base = None
+        self._paths = {}
+
+    # -- the start ------------------------------------------------------------------------------
+
+    def schedule(self) -> None:
+        """Fly the plan in force from its start time (after the flight controller is set up)."""
+        self.cancel_start()
+        self.set_phase(Phase.SCHEDULED, "")
+        self._start_task = asyncio.ensure_future(self._start_when_due())
+
+    def cancel_start(self) -> asyncio.Task | None:
+        task, self._start_task = self._start_task, None
+        if task is not None:
+            task.cancel()
+        return task
+
+    async def _start_when_due(self) -> None:
+        a, fc, m = self.a, self.a.autopilot, self.a.plans.mission
+        try:
+            while not (fc.clock.known and fc.ready):  # the flight controller's set-up is still running
+                await asyncio.sleep(0.05)
+            if a.opts.autostart:  # (a start command has its answer already)
+                a.say(f"plan {a.plans.plan.name} starts at {m.start_unix_s:.1f}")
+                if fc.now_unix() > m.start_unix_s - ARM_LEAD_S:
+                    a.say(f"ready {fc.now_unix() - m.start_unix_s + ARM_LEAD_S:.1f} s late for the start",
+                          mavlink.MAV_SEVERITY_WARNING)
+                await fc.clock.until(m.start_unix_s - ARM_LEAD_S)
+                await self.arm()
+            await fc.clock.until(m.start_unix_s)
+            if not fc.armed:
+                a.say("start time reached; waiting to be armed")
+                while not fc.armed:
+                    await asyncio.sleep(0.05)
+            if fc.mode != CustomMode.EXTERNAL:  # e.g. hovering after the operator's takeoff
+                result = await fc.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                          CustomMode.EXTERNAL)
+                if result != mavlink.MAV_RESULT_ACCEPTED:
+                    raise RuntimeError(f"the flight controller refused external control ({result})")
+                fc.mode = CustomMode.EXTERNAL
+            self.begin_entry(max(0.0, a.plan_time(fc.last_sample.boot_ms)))
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
+            a.log.exception("plan start failed")
+            self.set_phase(Phase.IDLE, "")
+            a.say(f"plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
+
+    async def arm(self) -> None:
+        result = await self.a.autopilot.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            self.a.say(f"the flight controller refused to arm ({result})")
+            raise RuntimeError("arming refused")
+
+    def state_now(self) -> np.ndarray | None:
+        """The measured state x of (28) from the newest sample, or None before one came."""
+        s = self.a.autopilot.last_sample
+        if s is None:
+            return None
+        eta = np.array(s.eta_rad)
+        R = model.rotation_body_to_earth(eta)
+        return np.concatenate([R.T @ np.array(s.velocity_e_m_s), s.rate_b_rad_s, eta, s.position_e_m])
+
+    def begin_entry(self, t0_s: float) -> None:
+        """Take off from where the drone rests and enter the formation (the plan's entry) from plan
+        time ``t0_s``."""
+        a = self.a
+        x = self.state_now()
+        a.controller_reset(x)
+        m = a.plans.mission
+        m.phase = "flying"
+        a.plans.save()
+        self.flying = self.tracking = a.plans.plan.entry_formation(x[None, 9:12], t0_s, self.mine(a.plans.formation))
+        self.set_phase(Phase.FLYING, "")
+
+    async def resume(self) -> None:
+        """After a restart: join the formation again from wherever the vehicle is."""
+        a, fc = self.a, self.a.autopilot
+        while self.state_now() is None:
+            await asyncio.sleep(0.05)
+        if not fc.armed or fc.landed:
+            if not fc.armed:
+                await self.arm()
+            self.begin_entry(a.plan_time(fc.last_sample.boot_ms) + 1.0)
+            return
+        x = self.state_now()
+        a.controller_reset(x)
+        t_plan = a.plan_time(fc.last_sample.boot_ms)
+        self.flying = self.mine(a.plans.formation)
+        self.hold = braking(t_plan + a.lead_s, a.plan_rfl.phi_r(x[None, :])[0])
+        self.rejoin(t_plan, RelativeTo(self.hold, a.plans.leader))
+
+    def check_release(self) -> None:
+        """The flight controller took the vehicle back (the operator's land or hold, a disarm):
+        this flight of the plan is over. (A failsafe hold, which commands win back, is not.)"""
+        fc = self.a.autopilot
+        if not self.in_flight:
+            return
+        if not fc.armed:
+            self.release("disarmed")
+        elif fc.mode != CustomMode.EXTERNAL and not fc.critical:
+            self.release(f"the flight controller is in {mode_name(fc.mode)}")
+
+    def release(self, reason: str) -> None:
+        self.a.plans.mission.phase = "done"
+        self.a.plans.save()
+        self.set_phase(Phase.IDLE, "")
+        self.a.say(f"formation flight over: {reason}", mavlink.MAV_SEVERITY_WARNING)
+
+    # -- hold and rejoin ------------------------------------------------------------------------
+
+    def start_hold(self, t_plan: float, xhat: np.ndarray, reason: str) -> None:
+        """xhat: the estimate x_r predicted to t_plan + lead ([lambda_dot, eta_dot, eta, lambda])."""
+        self.hold = braking(t_plan + self.a.lead_s, xhat)
+        n = self.a.plans.plan.n_agents
+        absent = {j: self.why_absent(j) for j in range(1, n + 1) if not self.usable(j)}
+        self.a.log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
+        self.set_phase(Phase.HOLDING, reason)
+
+    def rejoin(self, t_plan: float, source: Formation) -> None:
+        """Into the formation from ``source`` (the braking/held trajectory, or the formation of the
+        plan before): the reference starts exactly where (and as fast as) the drone is meant to be,
+        and its distance to the formation decays over REJOIN_S seconds, longer if the way is long
+        (peak acceleration REJOIN_ACCEL)."""
+        values = self.a.params.values
+        t0 = t_plan + self.a.lead_s  # references are evaluated at the time the estimates refer to
+        target = self.flying or self.mine(self.a.plans.formation)  # the entry, if it is not over
+        rejoin = Rejoin(source, target, t0, values["REJOIN_S"])
+        dp, dv = (float(np.linalg.norm(e[0])) for e in rejoin.initial_error)
+        duration_s = rejoin_duration(dp, dv, values["REJOIN_ACCEL"], values["REJOIN_S"])
+        if duration_s > rejoin.duration_s:
+            rejoin = Rejoin(source, target, t0, duration_s)
+        self.a.log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
+        self.tracking = rejoin
+        self.set_phase(Phase.FLYING, "")
+
+    def switched(self, t_plan: float) -> None:
+        """A plan was put in force in flight: its formation from now, reached as a rejoin does."""
+        self.flying = self.mine(self.a.plans.formation)
+        if self.phase == Phase.FLYING:
+            self.rejoin(t_plan, self.tracking)
+
+    # -- who counts -------------------------------------------------------------------------------
+
+    def presence(self) -> tuple[bool, ...]:
+        """Which agents count now (``usable``), every one. Of the agents this one does not listen
+        to, only liveliness, status and the start decide: that part is kept until one changes."""
+        starting = self.a.autopilot.now_unix() - self.flying_since < START_GRACE_S
+        key = (self.a.bus.changes, starting)
+        if self._presence_base is None or self._presence_base[0] != key:
+            n = self.a.plans.plan.n_agents
+            self._presence_base = (key, [self.usable(j) for j in range(1, n + 1)])
+        present = list(self._presence_base[1])
+        for j in self.a.listen_to:  # (their estimates' freshness changes every tick)
+            present[j - 1] = self.usable(j)
+        return tuple(present)
+
+    def has_path(self, topo, present: tuple[bool, ...]) -> bool:
+        """Whether this agent has a path from the leader through the present agents (cached: the
+        answer only changes when an agent comes or goes)."""
+        key = (topo.name, present)
+        found = self._paths.get(key)
+        if found is None:
+            found = self._paths[key] = bool(topo.reachable_from_leader(np.array(present))[self.a.id - 1])
+        return found
+
+    def usable(self, j: int, check_fresh: bool = True) -> bool:
+        """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
+        with an estimate younger than NB_TIMEOUT_S."""
+        a = self.a
+        if j == a.id:
+            return True
+        bus = a.bus
+        if j not in bus.alive:
+            return False
+        starting = a.autopilot.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
+        plans = a.plans_on_bus
+        status = bus.status_of(j, plans)
+        if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):
+            return False
+        if j not in a.listen_to:
+            return True  # not one of ours to listen to: liveliness and status decide
+        nb = bus.estimates[j]
+        if j in self.silent:  # (lockstep: the watchdog's) until it has published since. (Not "an
+            # estimate of now": nobody waits for a silent neighbour, so its estimate of now would have
+            # to beat this tick, a race an agent on the same clock loses tick after tick.)
+            if nb.t_plan_s < self.silent[j]:
+                return False
+            del self.silent[j]
+        if not nb.heard or nb.plan_id not in plans:
+            return starting
+        if nb.status != AgentStatus.FLYING:
+            return False
+        # stale in plan time (the flight controllers' clock): a pause of the whole swarm is not a loss
+        return not check_fresh or self.t_p - nb.t_plan_s <= a.params.values["NB_TIMEOUT_S"]
+
+    def why_absent(self, j: int) -> str:
+        bus = self.a.bus
+        if j not in bus.alive:
+            return "no liveliness"
+        status = bus.status_of(j, self.a.plans_on_bus)
+        nb = bus.estimates.get(j)
+        if nb is not None and nb.heard:
+            return (f"status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms old, "
+                    f"t_plan {nb.t_plan_s:.3f} (received {1e3 * (time.time() - nb.received_at):.0f} ms ago)")
+        return f"status {status.name if status else '?'}, no estimate"
+
+
+def braking(t: float, x: np.ndarray) -> QuinticTransfer:
+    """From x_r = [lambda_dot, eta_dot, eta, lambda] at plan time t to rest at its stopping point,
+    level (absolute, local frame; one agent)."""
+    p0, v0, eta0, eta_dot0 = x[9:12], x[0:3], x[6:9], x[3:6]
+    T = max(2.0, float(np.linalg.norm(v0)) / 2.0)
+    row = lambda a: np.asarray(a, dtype=float).reshape(1, 3)  # noqa: E731
+    return QuinticTransfer(row(p0), row(v0), row(p0 + v0 * T / 2.0), row(eta0), row(eta_dot0),
+                           row([0.0, 0.0, eta0[2]]), t, T)

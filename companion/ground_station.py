@@ -1,0 +1,253 @@
+"""The ground-station face of an agent: its link, MAVLink routing between that link and the flight
+controller's, the companion's parameters and commands (component 191), the mission server, status
+texts, heartbeats and the 1 Hz health values.
+
+With a signing key (``--signing-key``), the ground-station link signs every frame the companion
+sends and checks every frame it receives (MAVLink 2 signing, ``protocol.mavlink.setup_signing``).
+Of the unsigned ones only HEARTBEAT, PARAM_REQUEST_READ and PARAM_REQUEST_LIST pass: they change
+nothing, and let a ground station without the key (a monitor) be heard and read parameters. Every
+other unsigned frame, and every frame with a wrong signature or a replayed timestamp, is dropped
+before routing (so it reaches neither this component nor the flight controller), counted in the
+link's counters by reason, and reported to the ground station once a second. Frames forwarded
+from the flight controller, whose link is not signed, reach the ground station as they came. With
+a state folder, each ground-station stream's last timestamp is kept there (``signing.json``), so a
+frame taken before a restart is still a replay after it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink, setup_signing
+
+from .links import MavLink, Router
+
+HIGH_RATE = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                       mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
+                       mavlink.MAVLINK_MSG_ID_HIGHRES_IMU})
+"""Telemetry forwarded to the ground station at GCS_TLM_HZ at most."""
+UNSIGNED_FROM_GCS = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
+                               mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST})
+"""With a signing key: what the ground-station link takes unsigned (see the module's text)."""
+GCS_LINK_ID = 1  # the ground-station link's id in the signatures it sends
+HEALTH_VALUES = (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
+                 ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"), ("FORM_ERRM", "formation_error_m"))
+"""NAMED_VALUE_FLOAT names of the health report's values, sent once a second."""
+
+
+@dataclass
+class ParamSpec:
+    default: float
+    lo: float
+    hi: float
+    read_only: bool = False
+
+
+class Params:
+    """The companion's parameters (PARAM_* protocol of component 191), each with its range."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.specs = {
+            "CTRL_RATE_HZ": ParamSpec(rate_hz, 1.0, 2000.0, read_only=True),  # control (telemetry) rate
+            "NB_TIMEOUT_S": ParamSpec(0.2, 0.01, 10.0),  # a neighbour's estimate older than this: absent [s]
+            "NB_WAIT_MS": ParamSpec(1.0, 0.0, 4.0),      # longest wait for the neighbours' estimates [ms]
+            "REJOIN_S": ParamSpec(1.0, 0.2, 60.0),       # shortest way back into the formation [s]
+            "REJOIN_ACCEL": ParamSpec(4.0, 0.5, 20.0),   # peak acceleration on the way back [m/s^2]
+            "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),  # high-rate telemetry forwarded to the GCS [Hz]
+            "PLAN_T_S": ParamSpec(math.nan, -math.inf, math.inf, read_only=True),  # plan time when read [s]
+        }
+        self.values = {k: p.default for k, p in self.specs.items()}
+
+    def declare(self, name: str, value: float, read_only: bool = True) -> None:
+        self.specs[name] = ParamSpec(value, -math.inf, math.inf, read_only)
+        self.values[name] = value
+
+    def set(self, name: str, value: float) -> str | None:
+        """Set ``name``; returns why it was refused, or None."""
+        spec = self.specs.get(name)
+        if spec is None:
+            return f"unknown parameter {name}"
+        if spec.read_only:
+            return f"{name} is read-only"
+        if not (math.isfinite(value) and spec.lo <= value <= spec.hi):
+            return f"{name} must be within [{spec.lo:g}, {spec.hi:g}]"
+        self.values[name] = value
+        return None
+
+
+class GroundStation:
+    """``agent``: the ``Agent`` this is the face of (its parameters, plans and flight)."""
+
+    def __init__(self, agent, url: str, signing_key: bytes | None) -> None:
+        self.a = agent
+        self.link = MavLink("gcs", url, agent.id, COMP_ONBOARD)
+        self.signing_key = signing_key
+        if signing_key is not None:
+            setup_signing(self.link.codec, signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__, self.link.counters)
+        self.router = Router(agent.id, COMP_ONBOARD)
+        self._statustext_id = 0
+        self._forwarded_at: dict[int, float] = {}
+        self._refusals_told: Counter[str] = Counter()
+        self._signing_kept: dict[str, int] = {}
+
+    # -- routing ----------------------------------------------------------------------------------
+
+    def from_fc(self, msgs: list, t_rx: float) -> None:
+        """Frames from the flight-controller link: this agent's autopilot's to its face, and each
+        to where it is going."""
+        a, fc_link = self.a, self.a.autopilot.link
+        links = (fc_link, self.link)
+        for msg in msgs:
+            self.router.learn(fc_link, msg)
+            src = (msg.get_srcSystem(), msg.get_srcComponent())
+            if src == (a.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
+                a.autopilot.take(msg, t_rx)
+            for dest in self.router.destinations(fc_link, msg, links):
+                if dest is self.link and not self._rate_ok(msg):
+                    continue
+                dest.write(msg.get_msgbuf())
+            if src[0] != a.id and self.router.for_me(msg):
+                self._for_me(fc_link, msg)
+
+    def from_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
+        links = (self.a.autopilot.link, self.link)
+        for msg in msgs:
+            self.router.learn(link, msg)
+            for dest in self.router.destinations(link, msg, links):
+                dest.write(msg.get_msgbuf())
+            if self.router.for_me(msg):
+                self._for_me(link, msg)
+
+    def _rate_ok(self, msg) -> bool:
+        """High-rate telemetry reaches the ground station at GCS_TLM_HZ at most."""
+        mid = msg.get_msgId()
+        if mid not in HIGH_RATE:
+            return True
+        rate = self.a.params.values["GCS_TLM_HZ"]
+        if rate <= 0:
+            return False
+        now = time.monotonic()
+        if now - self._forwarded_at.get(mid, -math.inf) < 1.0 / rate:
+            return False
+        self._forwarded_at[mid] = now
+        return True
+
+    # -- component 191 ----------------------------------------------------------------------------
+
+    def _for_me(self, link: MavLink, msg) -> None:
+        if self.a.plan_server.handle(link, msg, time.monotonic()):
+            return
+        t = msg.get_type()
+        params = self.a.params
+        if t == "PARAM_REQUEST_LIST":
+            for k in range(len(params.values)):
+                link.send(self._param_value(k))
+        elif t == "PARAM_REQUEST_READ":
+            names = list(params.values)
+            name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+            k = msg.param_index if msg.param_index >= 0 else (names.index(name) if name in names else -1)
+            if 0 <= k < len(names):
+                link.send(self._param_value(k))
+        elif t == "PARAM_SET":
+            name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+            problem = params.set(name, float(msg.param_value))
+            if problem:
+                self.a.say(problem)
+            if name in params.values:
+                link.send(self._param_value(list(params.values).index(name)))
+        elif t in ("COMMAND_LONG", "COMMAND_INT"):
+            self._command(link, msg)
+
+    def _param_value(self, k: int):
+        values = self.a.params.values
+        name = list(values)[k]
+        if name == "PLAN_T_S":  # the plan time now, for commands timed in it (NaN: no plan in force)
+            start = self.a.plans.start_unix_s
+            values[name] = math.nan if start is None else self.a.autopilot.now_unix() - start
+        return mavlink.MAVLink_param_value_message(name.encode(), float(values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
+                                                   len(values), k)
+
+    def _command(self, link: MavLink, msg) -> None:
+        reason = ""
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            result = mavlink.MAV_RESULT_ACCEPTED
+            link.send(self.a.heartbeat())
+        elif msg.command == mavlink.MAV_CMD_TRISWARM_PLAN_START:
+            if msg.get_type() != "COMMAND_INT":
+                result, reason = mavlink.MAV_RESULT_DENIED, "plan start needs COMMAND_INT (its time is in x and y)"
+            else:
+                result, reason = self.a.plans.start(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
+        elif msg.command in (mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD):
+            result, reason = self.a.plans.leader_command(msg)
+        else:
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+        if reason:
+            self.a.say(reason, mavlink.MAV_SEVERITY_INFO if result == mavlink.MAV_RESULT_ACCEPTED else mavlink.MAV_SEVERITY_WARNING)
+        link.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                                      msg.get_srcComponent()))
+
+    # -- what it tells the ground station -------------------------------------------------------------
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """A text longer than 50 bytes goes in chunks (MAVLink 2 id, chunk_seq)."""
+        data = text.encode()
+        if len(data) <= 50:
+            self.link.send(mavlink.MAVLink_statustext_message(severity, data))
+            return
+        self._statustext_id = self._statustext_id % 0xFFFF + 1
+        for k in range(0, len(data) + 1, 50):  # (a text of a multiple of 50 ends with an empty chunk)
+            self.link.send(mavlink.MAVLink_statustext_message(severity, data[k:k + 50], self._statustext_id, k // 50))
+
+    def health_values(self, report: dict) -> None:
+        """The health report's values as NAMED_VALUE_FLOAT (a ground station plots them)."""
+        boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
+        for name, key in HEALTH_VALUES:
+            value = report.get(key)
+            if value is not None:
+                self.link.send(mavlink.MAVLink_named_value_float_message(boot_ms, name.encode(), float(value)))
+        for j, age in report["neighbour_age_ms"].items():
+            if age is not None:
+                self.link.send(mavlink.MAVLink_named_value_float_message(boot_ms, f"NB{j}_AGEMS".encode(), age))
+
+    def tell_refusals(self) -> None:
+        """The frames from the ground station refused since the last time, by reason (a ground
+        station without the key, or with another, learns why it gets no answer)."""
+        refused = Counter({k: n for k, n in self.link.counters.items() if k.startswith("refused_")})
+        new = refused - self._refusals_told
+        if new:
+            self._refusals_told = refused
+            counts = ", ".join(f"{n} {k.removeprefix('refused_').replace('_', ' ')}" for k, n in sorted(new.items()))
+            self.a.say(f"refused frames from the ground station: {counts}", mavlink.MAV_SEVERITY_WARNING)
+
+    # -- signing streams across restarts --------------------------------------------------------------
+
+    def restore_signing_streams(self) -> None:
+        """The ground station's signing streams as they were before a restart: a frame captured
+        before it stays a replay after it (a new stream alone would take any frame up to a minute
+        old, as the specification allows)."""
+        if self.signing_key is None:
+            return
+        store = self.a.store
+        saved = store.load_signing_streams()
+        if store.problem:
+            self.a.log.warning(store.problem)
+            store.problem = None
+        taken = self.link.codec.signing.restore(saved)
+        if taken:
+            self.a.log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
+        self._signing_kept = self.link.codec.signing.streams()
+
+    def keep_signing_streams(self) -> None:
+        """Save the signing streams if they moved (once a second at most)."""
+        if self.signing_key is None:
+            return
+        streams = self.link.codec.signing.streams()
+        if streams != self._signing_kept:
+            try:
+                self.a.store.save_signing_streams(streams)
+                self._signing_kept = streams
+            except OSError as exc:
+                self.a.log.warning(f"signing streams not saved: {exc}")
