@@ -69,6 +69,7 @@ class Autopilot:
         self.backlog: deque[Sample] = deque(maxlen=50)
         """Samples not acted on yet (the control loop takes them)."""
         self._att: tuple | None = None  # the newest ATTITUDE: (boot_ms, eta, rates)
+        self._woke = False
         self._pending: dict = {}
 
     def write(self, frame: bytes) -> None:
@@ -122,8 +123,13 @@ class Autopilot:
         if last is not None and s.t_rx - last.t_rx > 0.05:
             self.log.debug(f"telemetry gap {1e3 * (s.t_rx - last.t_rx):.0f} ms (fc time {s.boot_ms - last.boot_ms} ms)")
         self.last_sample = s
-        self.answers.defer = self.clock.advance(s.boot_ms)
+        self.answers.defer = self._woke = self.clock.advance(s.boot_ms)
         self.backlog.append(s)
+
+    def take_woke(self) -> bool:
+        """Whether the newest sample woke a wait (once)."""
+        woke, self._woke = self._woke, False
+        return woke
 
     def _resolve(self, key, value) -> None:
         fut = self._pending.pop(key, None)

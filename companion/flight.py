@@ -23,7 +23,7 @@ import numpy as np
 
 from triswarm.protocol import model
 from triswarm.protocol.codec import AgentStatus
-from triswarm.protocol.formation import Formation, QuinticTransfer, RelativeTo, Rejoin, Row, rejoin_duration
+from triswarm.protocol.formation import Formation, Kinematics, QuinticTransfer, RelativeTo, Rejoin, Row, Rows, rejoin_duration
 from triswarm.protocol.mavlink import CustomMode, mavlink, mode_name
 
 ARM_LEAD_S = 2.0
@@ -164,7 +164,7 @@ class Flight:
         m = a.plans.mission
         m.phase = "flying"
         a.plans.save()
-        self.flying = self.tracking = a.plans.plan.entry_formation(x[None, 9:12], t0_s, self.mine(a.plans.formation))
+        self.flying = self.tracking = a.host.entry(a.plans.plan, a.plans.formation, t0_s).join(self.a.id - 1, x[9:12])
         self.set_phase(Phase.FLYING, "")
 
     async def resume(self) -> None:
@@ -308,3 +308,40 @@ def braking(t: float, x: np.ndarray) -> QuinticTransfer:
     row = lambda a: np.asarray(a, dtype=float).reshape(1, 3)  # noqa: E731
     return QuinticTransfer(row(p0), row(v0), row(p0 + v0 * T / 2.0), row(eta0), row(eta_dot0),
                            row([0.0, 0.0, eta0[2]]), t, T)
+
+
+class SharedEntry(Formation):
+    """The entries of the agents of a process that begin entering one plan's formation at the same
+    plan time: one entry formation (``Plan.entry_formation``) over all their rows, evaluated once
+    per instant for all of them. Each agent flies its ``Row`` (``join``); an agent that joins
+    later (a restart) adds a row, and the rows before keep their values to the bit (the entry is
+    computed element by element)."""
+
+    def __init__(self, plan, formation: Formation, t0_s: float) -> None:
+        self.plan, self.formation, self.t0_s = plan, formation, t0_s
+        self._rows: list[int] = []
+        self._starts: list[np.ndarray] = []
+        self._built: Formation | None = None
+
+    @property
+    def n_agents(self) -> int:
+        return len(self._rows)
+
+    def join(self, index: int, start_position_m: np.ndarray) -> Row:
+        """Agent ``index`` (from 0) of the plan, resting at ``start_position_m``: its row."""
+        self._rows.append(index)
+        self._starts.append(np.asarray(start_position_m, dtype=float))
+        self._built = None
+        return Row(self, len(self._rows) - 1)
+
+    def _entry(self) -> Formation:
+        if self._built is None:
+            self._built = self.plan.entry_formation(np.array(self._starts), self.t0_s,
+                                                    Rows(self.formation, tuple(self._rows)))
+        return self._built
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        return self._entry().kinematics(t_s)
+
+    def offsets(self, t_s: float):
+        return self._entry().offsets(t_s)

@@ -20,6 +20,7 @@ from triswarm.protocol.plan import PlanError, plan_from_dict
 
 from .agent import Agent, CompanionOptions
 from .bus import Bus, default_config, open_session, peer_config, tune
+from .flight import SharedEntry
 from .loop import ControlLoop
 
 WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m": 1.0, "altitude_m": 1.0, "rate_rad_s": 0.0}}
@@ -55,6 +56,7 @@ class Host:
         self._session = None
         self._buses: dict[str, Bus] = {}
         self._controllers: dict[tuple, tuple] = {}
+        self._entries: dict[tuple, tuple] = {}
 
     def bus(self, swarm: str, n_agents: int) -> Bus:
         """The process's bus for ``swarm`` (opened on the process's session the first time)."""
@@ -78,6 +80,17 @@ class Host:
             ctrl = FormationController(design, len(self.options), rate_hz, thrust_adaptation_rate_1_s=adaptation_1_s)
             found = self._controllers[key] = (design, ctrl)  # (the design kept: its id stays its own)
         return found[1]
+
+    def entry(self, plan, formation, t0_s: float) -> SharedEntry:
+        """The entry of ``plan``'s ``formation`` from plan time ``t0_s`` that the agents of this
+        process beginning it then share."""
+        key = (id(plan), id(formation), t0_s)
+        found = self._entries.get(key)
+        if found is None:
+            if len(self._entries) > 8:
+                self._entries.clear()
+            found = self._entries[key] = (plan, formation, SharedEntry(plan, formation, t0_s))
+        return found[2]
 
     async def run(self, stop: asyncio.Event) -> list[dict]:
         """Fly every agent until ``stop``; if one cannot start or fails, stop them all and raise its

@@ -74,18 +74,28 @@ class ControlLoop:
 
     def due(self, agent) -> None:
         """``agent``'s flight-controller link was read (a new sample, or a state offered again):
-        run once everything readable now has been read."""
+        run once everything readable now has been read. A sample that woke a wait (a start time)
+        is acted on at once, before what it woke runs, whichever agent's link happened to be read
+        first: what a tick sees at a given instant must not depend on the order of the reads (two
+        lockstep runs give the same flight)."""
+        if agent.autopilot.take_woke():
+            self._due.pop(agent, None)
+            self._run([agent])
+            return
         self._due[agent] = None
         if not self._scheduled:
             self._scheduled = True
-            self.loop.call_soon(self._run)
+            self.loop.call_soon(self._run_due)
 
-    # -- the run ------------------------------------------------------------------------------------
-
-    def _run(self) -> None:
+    def _run_due(self) -> None:
         self._scheduled = False
         agents = list(self._due)
         self._due.clear()
+        self._run(agents)
+
+    # -- the run ------------------------------------------------------------------------------------
+
+    def _run(self, agents: list) -> None:
         late = [self.waiting.pop(a) for a in agents if a in self.waiting]
         if late:  # a new sample before the neighbours came: act now on what there is
             self._finish(late)

@@ -289,10 +289,18 @@ class Blend(_Transition):
     after the blend exactly ``target``. Starting from a moving source (a vehicle braking) it starts
     exactly where and how fast that source is."""
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "_recent", OrderedDict())
+
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """``kinematics(t).offsets()``, blended in offset coordinates (the control loop's hot path):
         h = [p_dot, eta_dot, eta, p] holds every value and first derivative, h_dot[:, 0:6] the
-        second derivatives."""
+        second derivatives. The last few instants asked are kept (``_recently``): the agents of a
+        companion process that enter a formation together fly rows of one blend."""
+        return _recently(self._recent, t_s, self._offsets)
+
+    def _offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         T = self.duration_s
         s, ds, dds = quintic_blend((t_s - self.t0_s) / T)
         if s == 1.0:
@@ -554,6 +562,28 @@ class Row(Formation):
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         h, h_dot = self.formation.offsets(t_s)
         return h[self.index:self.index + 1], h_dot[self.index:self.index + 1]
+
+
+@dataclass(frozen=True)
+class Rows(Formation):
+    """Rows ``indices`` (from 0) of ``formation``, in that order: the part of a swarm's formation
+    that some of its agents fly."""
+
+    formation: Formation
+    indices: tuple[int, ...]
+
+    @property
+    def n_agents(self) -> int:
+        return len(self.indices)
+
+    def kinematics(self, t_s: float) -> Kinematics:
+        k, r = self.formation.kinematics(t_s), list(self.indices)
+        return Kinematics(k.p[r], k.p_dot[r], k.p_ddot[r], k.eta[r], k.eta_dot[r], k.eta_ddot[r])
+
+    def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        h, h_dot = self.formation.offsets(t_s)
+        r = list(self.indices)
+        return h[r], h_dot[r]
 
 
 @dataclass(frozen=True)
