@@ -1,5 +1,5 @@
 """The autopilot logic of one simulated tri-rotor: modes, arming, failsafe, the command and
-parameter protocols, a battery, counters, and telemetry in MAVLink's frames.
+parameter protocols, a battery and counters. What it sends is ``telemetry.py``'s.
 
 No sockets and no clock: the swarm passes sim time and a sensor snapshot; handlers return the
 messages to send (pymavlink message objects) and the link layer packs them.
@@ -14,36 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from triswarm.protocol import frames
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe, ParameterError
 from triswarm.protocol.frames import LocalProjection
 from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink
-from triswarm.protocol.model import actuator_inverse
 
-from .physics import rotation_from_quaternion
+from . import telemetry
+from .telemetry import STREAM_CODE, STREAMS, Snapshot
 
 LINKS = ("companion", "gcs")
-FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2: force
-FIRMWARE_VERSION = (0, 1, 0)
-
-# Messages streamed, with the code used in their rate parameter (SC_<code>_HZ on the companion link,
-# SG_<code>_HZ on the ground-station link) and the default rates [Hz] on each link.
-STREAMS = {
-    "ATT": (mavlink.MAVLINK_MSG_ID_ATTITUDE, 100.0, 10.0),
-    "ATTQ": (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 50.0, 0.0),
-    "LPOS": (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100.0, 10.0),
-    "GPOS": (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0, 5.0),
-    "ODOM": (mavlink.MAVLINK_MSG_ID_ODOMETRY, 50.0, 0.0),
-    "IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 50.0, 0.0),
-    "SYS": (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0, 1.0),
-    "BATT": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, 1.0, 1.0),
-    "EXT": (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 1.0, 1.0),
-    "HOME": (mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.2, 0.2),
-    "ACT": (mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 10.0, 2.0),
-    "TIME": (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1.0, 1.0),
-}
-STREAM_CODE = {msg_id: code for code, (msg_id, _, _) in STREAMS.items()}
 LINK_PREFIX = {"companion": "SC", "gcs": "SG"}
+FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2: force
 
 
 @dataclass(frozen=True)
@@ -97,29 +77,6 @@ def param_specs(af: Airframe) -> list[ParamSpec]:
 
 
 @dataclass
-class Snapshot:
-    """What the vehicle's estimator reports (truth plus configured noise), paper frames. The swarm
-    holds one with a leading vehicle axis; ``row(i)`` is vehicle i's."""
-
-    position_m: np.ndarray
-    velocity_e_m_s: np.ndarray
-    velocity_b_m_s: np.ndarray
-    euler_rad: np.ndarray
-    quaternion: np.ndarray
-    rate_b_rad_s: np.ndarray
-    specific_force_b: np.ndarray
-    landed: bool
-    rho: np.ndarray
-
-    def paper_state(self) -> np.ndarray:
-        """The state x of (28): body velocity, body rates, Euler angles, position."""
-        return np.concatenate([self.velocity_b_m_s, self.rate_b_rad_s, self.euler_rad, self.position_m], axis=-1)
-
-    def row(self, i: int) -> "Snapshot":
-        return Snapshot(*(v[i] for v in vars(self).values()))
-
-
-@dataclass
 class Outgoing:
     msg: object
     link: str | None  # None: every link
@@ -138,6 +95,8 @@ class FlightController:
         self.specs = param_specs(airframe)
         self.spec_by_name = {p.name: p for p in self.specs}
         self.params = {p.name: float(p.default) for p in self.specs}
+        self.params_version = 0
+        """Counts the parameter changes (a reader caches what it derives from them)."""
         self.param_index = {p.name: i for i, p in enumerate(self.specs)}
         self._airframe = self._airframe_from_params()
         self.armed = False
@@ -191,6 +150,7 @@ class FlightController:
             return f"{name} must be within [{spec.lo:g}, {spec.hi:g}], got {value:g}"
         old = self.params[name]
         self.params[name] = float(value)
+        self.params_version += 1
         if name in AIRFRAME_PARAMS:
             try:
                 self._airframe = self._airframe_from_params()
@@ -255,7 +215,7 @@ class FlightController:
             return f"arming refused: tilted {tilt:.0f} deg, more than 30"
         return None
 
-    def disarm(self, now_s: float, snap: Snapshot, force: bool, reason: str = "disarmed") -> tuple[int, str | None]:
+    def disarm(self, now_s: float, snap: Snapshot | None, force: bool, reason: str = "disarmed") -> tuple[int, str | None]:
         if not self.armed:
             return mavlink.MAV_RESULT_ACCEPTED, None
         if not force and not snap.landed:
@@ -267,19 +227,20 @@ class FlightController:
         self.announce(reason)
         return mavlink.MAV_RESULT_ACCEPTED, None
 
-    def tick(self, now_s: float, dt_s: float, snap: Snapshot, internal_done: bool) -> None:
-        """Failsafe timers, automatic mode changes and the battery, once per control period."""
-        if snap.landed:
+    def tick(self, now_s: float, landed: bool, internal_done: bool) -> None:
+        """Failsafe timers and automatic mode changes, once per control period (the battery:
+        ``drain_batteries``)."""
+        if landed:
             if self.landed_since_s < 0:
                 self.landed_since_s = now_s
         else:
             self.landed_since_s = -1.0
         if self.armed:
             silent_s = now_s - self.last_command_s
-            if self.mode == CustomMode.EXTERNAL and snap.landed:
+            if self.mode == CustomMode.EXTERNAL and landed:
                 # nothing to hold on the ground: disarm when nobody flies the drone (preflight timeout)
                 if silent_s > self.params["DISARM_PRFLT_S"]:
-                    self.disarm(now_s, snap, force=True,
+                    self.disarm(now_s, None, force=True,
                                 reason=f"disarmed: no actuator command for {self.params['DISARM_PRFLT_S']:g} s on ground")
             elif self.mode == CustomMode.EXTERNAL and silent_s > self.params["FS_TIMEOUT_S"]:
                 self.set_mode(CustomMode.HOLD, now_s, failsafe=True)
@@ -293,29 +254,17 @@ class FlightController:
             elif self.mode == CustomMode.TAKEOFF and internal_done:
                 self.set_mode(CustomMode.HOLD, now_s)
                 self.announce("takeoff complete, holding")
-            elif (self.mode == CustomMode.LAND and snap.landed and self.landed_since_s >= 0
+            elif (self.mode == CustomMode.LAND and landed and self.landed_since_s >= 0
                   and now_s - self.landed_since_s >= self.params["DISARM_DELAY_S"]):
-                self.disarm(now_s, snap, force=True, reason="landed, disarmed")
-        self._battery(snap, dt_s)
+                self.disarm(now_s, None, force=True, reason="landed, disarmed")
 
     # -- battery ----------------------------------------------------------------------------
 
     def _open_circuit_voltage(self) -> float:
-        soc = 1.0 - self.battery_used_mah / self.params["BAT_CAP_MAH"]
-        return self.params["BAT_CELLS"] * (3.3 + 0.9 * max(0.0, min(1.0, soc)))
+        return float(open_circuit_voltage_v(self.params["BAT_CELLS"], self.battery_used_mah, self.params["BAT_CAP_MAH"]))
 
     def battery_remaining_pct(self) -> float:
         return max(0.0, 100.0 * (1.0 - self.battery_used_mah / self.params["BAT_CAP_MAH"]))
-
-    def _battery(self, snap: Snapshot, dt_s: float) -> None:
-        """Shaft power k_d w^3 per rotor at 70 % efficiency, plus 3 W of avionics."""
-        omega2 = np.hypot(snap.rho[0:3], snap.rho[3:6])
-        shaft_w = float(np.sum(self.params["KD"] * omega2 ** 1.5))
-        ocv = self._open_circuit_voltage()
-        current = (shaft_w / 0.7 + 3.0) / max(ocv, 1.0)
-        self.battery_current_a = current
-        self.battery_voltage_v = ocv - 0.015 * self.params["BAT_CELLS"] * current
-        self.battery_used_mah += current * dt_s / 3.6
 
     # -- incoming messages ------------------------------------------------------------------
 
@@ -563,8 +512,7 @@ class FlightController:
 
     def build(self, msg_id: int, now_s: float, snap: Snapshot):
         """The message ``msg_id`` describing the vehicle now, or None if this autopilot has none."""
-        builder = _BUILDERS.get(msg_id)
-        return None if builder is None else builder(self, now_s, snap)
+        return telemetry.build(self, msg_id, now_s, snap)
 
 
 def _param_name(param_id) -> str:
@@ -573,156 +521,24 @@ def _param_name(param_id) -> str:
     return param_id.split("\x00", 1)[0]
 
 
-def _ms(now_s: float) -> int:
-    return round(now_s * 1000.0) & 0xFFFFFFFF  # (round: a time of whole steps is no float error below it)
+def open_circuit_voltage_v(cells, used_mah, capacity_mah):
+    """A LiPo pack's open-circuit voltage: 3.3 V per cell empty to 4.2 V full, linear in charge."""
+    return cells * (3.3 + 0.9 * np.clip(1.0 - used_mah / capacity_mah, 0.0, 1.0))
 
 
-def _us(now_s: float) -> int:
-    return round(now_s * 1e6)
-
-
-# Each builder converts the paper-frame snapshot to MAVLink's NED/FRD here and only here.
-
-def _attitude(fc, now_s, s):
-    r, p, y = frames.euler_flip(s.euler_rad)
-    wr, wp, wy = frames.flip(s.rate_b_rad_s)
-    return mavlink.MAVLink_attitude_message(_ms(now_s), r, p, y, wr, wp, wy)
-
-
-def _attitude_quaternion(fc, now_s, s):
-    q = frames.quaternion_flip(s.quaternion)
-    wr, wp, wy = frames.flip(s.rate_b_rad_s)
-    return mavlink.MAVLink_attitude_quaternion_message(_ms(now_s), q[0], q[1], q[2], q[3], wr, wp, wy, [0.0] * 4)
-
-
-def _local_position(fc, now_s, s):
-    x, y, z = frames.flip(s.position_m)
-    vx, vy, vz = frames.flip(s.velocity_e_m_s)
-    return mavlink.MAVLink_local_position_ned_message(_ms(now_s), x, y, z, vx, vy, vz)
-
-
-def _global_position(fc, now_s, s):
-    north, east, down = frames.flip(s.position_m)
-    lat, lon = fc.home.to_geodetic(north, east)
-    vx, vy, vz = frames.flip(s.velocity_e_m_s)
-    yaw = frames.euler_flip(s.euler_rad)[2]
-    hdg = int(round(math.degrees(yaw) * 100.0)) % 36000
-    return mavlink.MAVLink_global_position_int_message(
-        _ms(now_s), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round((fc.home.alt_m - down) * 1000.0)),
-        int(round(-down * 1000.0)), _clamp16(vx * 100), _clamp16(vy * 100), _clamp16(vz * 100), hdg)
-
-
-def _odometry(fc, now_s, s):
-    x, y, z = frames.flip(s.position_m)
-    q = frames.quaternion_flip(s.quaternion)
-    vx, vy, vz = frames.flip(s.velocity_b_m_s)
-    wr, wp, wy = frames.flip(s.rate_b_rad_s)
-    unknown = [float("nan")] + [0.0] * 20
-    return mavlink.MAVLink_odometry_message(
-        _us(now_s), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, x, y, z, list(q), vx, vy, vz, wr, wp, wy,
-        unknown, unknown, 0, mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100)
-
-
-MAG_NED_GAUSS = np.array([0.19, 0.0, 0.45])
-
-
-def _highres_imu(fc, now_s, s):
-    ax, ay, az = frames.flip(s.specific_force_b)
-    gx, gy, gz = frames.flip(s.rate_b_rad_s)
-    R_ned_frd = _rotation_ned_frd(s.quaternion)
-    mx, my, mz = R_ned_frd.T @ MAG_NED_GAUSS
-    alt = fc.home.alt_m + float(s.position_m[2])
-    pressure_hpa = 1013.25 * (1.0 - 2.25577e-5 * alt) ** 5.25588
-    return mavlink.MAVLink_highres_imu_message(_us(now_s), ax, ay, az, gx, gy, gz, mx, my, mz, pressure_hpa, 0.0, alt,
-                                               15.0 - 0.0065 * alt, 0x1FFF, 0)
-
-
-def _rotation_ned_frd(q_paper):
-    return rotation_from_quaternion(frames.quaternion_flip(q_paper))
-
-
-SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-           | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-           | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
-           | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
-
-
-def _sys_status(fc, now_s, s):
-    c = fc.counters
-    drops = fc.drops
-    total = drops + c["rx_frames"]
-    drop_rate = int(10000 * drops / total) if total else 0
-    return mavlink.MAVLink_sys_status_message(
-        SENSORS, SENSORS, SENSORS, 100, int(fc.battery_voltage_v * 1000), int(fc.battery_current_a * 100),
-        int(fc.battery_remaining_pct()), min(drop_rate, 10000), min(drops, 65535),
-        min(c["drop_bad_crc"], 65535), min(c["drop_bad_frame"], 65535), min(c["drop_foreign_system"], 65535),
-        min(c["drop_actuator_non_finite"], 65535))
-
-
-def _battery_status(fc, now_s, s):
-    cells = int(fc.params["BAT_CELLS"])
-    per_cell = int(fc.battery_voltage_v / cells * 1000)
-    voltages = [per_cell if i < cells else 65535 for i in range(10)]
-    return mavlink.MAVLink_battery_status_message(
-        0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767, voltages,
-        int(fc.battery_current_a * 100), int(fc.battery_used_mah), -1, int(fc.battery_remaining_pct()))
-
-
-def _extended_sys_state(fc, now_s, s):
-    return mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_UNDEFINED, fc.landed_state(s))
-
-
-def _home_position(fc, now_s, s):
-    north, east, down = frames.flip(fc.start_m)
-    lat, lon = fc.home.to_geodetic(north, east)
-    return mavlink.MAVLink_home_position_message(
-        int(round(lat * 1e7)), int(round(lon * 1e7)), int(round((fc.home.alt_m - down) * 1000)), north, east, down,
-        [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, _us(now_s))
-
-
-def _actuator_output_status(fc, now_s, s):
-    af = fc.airframe()
-    omega, alpha = actuator_inverse(s.rho)
-    values = list(omega / af.max_rotor_speed_rad_s) + list(alpha / af.servo_limit_rad) + [0.0] * 26
-    return mavlink.MAVLink_actuator_output_status_message(_us(now_s), 0b111111, values)
-
-
-def _system_time(fc, now_s, s):
-    return mavlink.MAVLink_system_time_message(round(fc.boot_unix_s * 1e6) + _us(now_s), _ms(now_s))
-
-
-def _autopilot_version(fc, now_s, s):
-    # Honest: what this autopilot implements (no missions, no FTP, no position/attitude targets;
-    # the actuator-target capability bit has been retired from MAVLink, so it is not claimed).
-    caps = (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
-    major, minor, patch = FIRMWARE_VERSION
-    version = (major << 24) | (minor << 16) | (patch << 8) | 255  # 255: official release
-    return mavlink.MAVLink_autopilot_version_message(caps, version, 0, 0, 0, b"triswarm", b"\0" * 8, b"\0" * 8,
-                                                     0x7157, 0x0003, 0x74730000 + fc.sysid)
-
-
-def _heartbeat(fc, now_s, s):
-    return fc.heartbeat()
-
-
-def _clamp16(v: float) -> int:
-    return int(max(-32767, min(32767, round(v))))
-
-
-_BUILDERS = {
-    mavlink.MAVLINK_MSG_ID_HEARTBEAT: _heartbeat,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: _attitude,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: _attitude_quaternion,
-    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: _local_position,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: _global_position,
-    mavlink.MAVLINK_MSG_ID_ODOMETRY: _odometry,
-    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: _highres_imu,
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: _sys_status,
-    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: _battery_status,
-    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
-    mavlink.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
-    mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: _actuator_output_status,
-    mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
-    mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
-}
+def drain_batteries(fcs: list[FlightController], rho: np.ndarray, dt_s: float) -> None:
+    """One control period of every vehicle's battery: shaft power k_d w^3 per rotor at 70 %
+    efficiency, plus 3 W of avionics. ``rho`` (N, 6) is what the rotors applied (29)."""
+    p = [fc.params for fc in fcs]
+    kd = np.array([q["KD"] for q in p])
+    cells = np.array([q["BAT_CELLS"] for q in p])
+    cap = np.array([q["BAT_CAP_MAH"] for q in p])
+    used = np.array([fc.battery_used_mah for fc in fcs])
+    omega2 = np.hypot(rho[:, 0:3], rho[:, 3:6])
+    shaft_w = kd * np.sum(omega2 ** 1.5, axis=1)
+    ocv = open_circuit_voltage_v(cells, used, cap)
+    current = (shaft_w / 0.7 + 3.0) / np.maximum(ocv, 1.0)
+    voltage = ocv - 0.015 * cells * current
+    used = used + current * dt_s / 3.6
+    for fc, a, v, u in zip(fcs, current.tolist(), voltage.tolist(), used.tolist()):
+        fc.battery_current_a, fc.battery_voltage_v, fc.battery_used_mah = a, v, u

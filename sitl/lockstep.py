@@ -47,7 +47,8 @@ class Lockstep:
     """Vehicle index -> [telemetry time it must answer (us), wall time sent, wall time last offered]."""
     last_sent_us: dict[int, int] = field(default_factory=dict)
     waited_wall_s: list[float] = field(default_factory=list)
-    """Per vehicle: wall time the clock stood waiting for it alone or with others [s]."""
+    """Per vehicle: wall time from each state sent to its answer, summed (the clock stood that long
+    for it, alone or with others) [s]."""
     left: list[tuple[int, float]] = field(default_factory=list)
     """(vehicle index, simulated time [s]) each time a member was taken out by the watchdog."""
 
@@ -64,9 +65,9 @@ class Lockstep:
         if i in self.members and i not in self.awaiting:
             self.awaiting[i] = [t_us, now_wall, now_wall]
 
-    def answered(self, i: int, t_us: int) -> str | None:
-        """Vehicle i's companion answered telemetry time t_us. Returns what changed ("started",
-        "back": vehicle i is a member again), or None."""
+    def answered(self, i: int, t_us: int, now_wall: float) -> str | None:
+        """Vehicle i's companion answered telemetry time t_us (at wall time ``now_wall``). Returns
+        what changed ("started", "back": vehicle i is a member again), or None."""
         said = None
         if i not in self.members and t_us >= self.last_sent_us.get(i, 0):
             self.members.add(i)
@@ -78,12 +79,8 @@ class Lockstep:
         waiting = self.awaiting.get(i)
         if waiting is not None and t_us >= waiting[0]:
             del self.awaiting[i]
+            self.waited_wall_s[i] += now_wall - waiting[1]
         return said
-
-    def waited(self, wall_s: float) -> None:
-        """The clock stood for ``wall_s``: charge it to every vehicle it waited for."""
-        for i in (self.awaiting if self.started else set(range(self.n)) - self.members):
-            self.waited_wall_s[i] += wall_s
 
     def overdue(self, now_wall: float, sim_s: float) -> tuple[list[int], list[int]]:
         """(vehicles whose state to send again, vehicles taken out now by the watchdog)."""

@@ -5,14 +5,14 @@ sends first (a heartbeat), and the vehicle then streams to every address heard f
 few seconds. One asyncio loop runs the physics of all vehicles, answers every datagram as it
 arrives, and sends the telemetry that falls due: all the messages one link owes at one physics
 step go out in one datagram. The clock is either the wall clock (times ``speedup``) or, with a
-``Lockstep``, the companions' answers (``lockstep.py``).
+``Lockstep``, the companions' answers (``lockstep.py``): then the plant steps in the very callback
+that takes the last answer it waited for, and telemetry leaves at once.
 """
 
 from __future__ import annotations
 
 import asyncio
 import gc
-import heapq
 import math
 import os
 import socket
@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 from triswarm.protocol import frames
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
 
-from .fc import LINKS, STREAMS, _ms
+from .fc import LINKS
 from .lockstep import HIGH_RATE_IDS, Lockstep, LockstepOptions
 from .swarm import SitlSwarm
+from .telemetry import CONSTRUCTORS, STREAMS, _ms, batch_args
 
 PEER_TIMEOUT_S = 5.0
 MAX_PEERS_PER_LINK = 8
@@ -84,15 +85,19 @@ class SitlServer:
         self.base_port = base_port
         self.speedup = float(speedup)
         self.links: list[dict[str, Link]] = []
-        self._heap: list = []
-        self._version: dict = {}
+        self._streams: dict[tuple[int, str], dict[int, int]] = {}
+        """Per (vehicle, link): each stream's period [physics steps]."""
+        self._groups: dict[int, dict[tuple[int, str], list[int]]] = {}
+        """The same by period: what is due at every multiple of it."""
         self.sent = Counter()
         self.max_lag_s = 0.0
         self.overruns = 0
         self.wall_start = 0.0
         self.wall_elapsed = 0.0
         self.exceptions = 0
-        self._resume: asyncio.Event | None = None
+        self._lockstep_running = False
+        self._wall_start_mono = time.monotonic()
+        self._report = (self._wall_start_mono, 0.0)  # lockstep: (wall, simulated time) of the last RTF report
         self._join_wall_s = 0.0  # lockstep: wall time until every companion answered [s]
         self._join_sim_s = 0.0
 
@@ -188,19 +193,24 @@ class SitlServer:
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
         if self.lockstep is not None and link.name == "companion":
-            said = self.lockstep.answered(link.vehicle, fc.answered_us)
+            said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall)
             if said == "started":
                 self.say("lockstep: every vehicle's companion answers; the clock runs")
+                self._join_wall_s, self._join_sim_s = time.monotonic() - self._wall_start_mono, self.swarm.time_s
+                self._report = (time.monotonic(), self.swarm.time_s)
             elif said == "back":
                 self.say(f"lockstep: vehicle {fc.sysid}'s companion answers again; it is back in lockstep")
-            if self._resume is not None and not self.lockstep.blocked:
-                self._resume.set()
+            advance = self._lockstep_running and not self.lockstep.blocked
+        else:
+            advance = False
         if fc.rates_changed:
             fc.rates_changed = False
             self._schedule_vehicle(link.vehicle)
         for out in replies:
             self._send(link.vehicle, out.msg, out.link)
         self._flush_outbox(link.vehicle)
+        if advance:
+            self._advance()
 
     # -- outgoing ---------------------------------------------------------------------------
 
@@ -232,55 +242,65 @@ class SitlServer:
                 link.send_errors += 1
 
     def _schedule_vehicle(self, i: int) -> None:
-        """(Re)build vehicle i's stream schedule from its rate parameters (old entries lapse)."""
+        """(Re)build vehicle i's stream schedule from its rate parameters. A stream of period P
+        (whole physics steps) is due at every step that is a multiple of P, so the streams of every
+        vehicle with one rate leave at the same steps, together."""
         fc = self.swarm.fcs[i]
         dt = self.swarm.dt_s
         for name in LINKS:
+            periods = {}
             for msg_id in SCHEDULED:
                 rate = fc.stream_rate_hz(name, msg_id)
-                key = (i, name, msg_id)
-                old = self._version.get(key)
-                if old is not None and old[1] == rate:
-                    continue
-                version = (old[0] + 1 if old else 0, rate)
-                self._version[key] = version
                 if rate > 0:
-                    period_steps = max(1, int(round(1.0 / (rate * dt))))
-                    step = (self.swarm.steps // period_steps + 1) * period_steps
-                    heapq.heappush(self._heap, (step, i, name, msg_id, version[0], period_steps))
+                    periods[msg_id] = max(1, int(round(1.0 / (rate * dt))))
+            self._streams[(i, name)] = periods
+        groups: dict[int, dict[tuple[int, str], list[int]]] = {}
+        for key, periods in self._streams.items():
+            for msg_id, period in periods.items():
+                groups.setdefault(period, {}).setdefault(key, []).append(msg_id)
+        self._groups = groups
 
     def _send_due(self) -> None:
-        """Send every stream message due at this step, one datagram per link."""
-        heap, step = self._heap, self.swarm.steps
-        if not heap or heap[0][0] > step:
-            return
-        batches: dict[tuple[int, str], list[int]] = {}
-        while heap and heap[0][0] <= step:
-            due, i, name, msg_id, version, period = heapq.heappop(heap)
-            if self._version.get((i, name, msg_id), (None,))[0] != version:
-                continue  # rescheduled since
-            heapq.heappush(heap, (due + period, i, name, msg_id, version, period))
-            batches.setdefault((i, name), []).append(msg_id)
-        for (i, name), ids in batches.items():
-            self._send_batch(i, name, ids)
+        """Send every stream message due at this step, one datagram per vehicle and link."""
+        step = self.swarm.steps
+        batches: dict[tuple[int, str], list[int]] | None = None
+        for period, entries in self._groups.items():
+            if step % period:
+                continue
+            if batches is None:
+                batches = {key: list(ids) for key, ids in entries.items()}
+            else:
+                for key, ids in entries.items():
+                    batches.setdefault(key, []).extend(ids)
+        if batches:
+            now_wall = time.monotonic()
+            for (i, name), ids in batches.items():
+                self._send_batch(i, name, sorted(ids), now_wall)
 
-    def _send_batch(self, i: int, name: str, ids) -> None:
+    def _send_batch(self, i: int, name: str, ids, now_wall: float | None = None) -> None:
         """Messages ``ids`` of vehicle i as they are now, in one datagram on link ``name``."""
-        now_wall = time.monotonic()
+        now_wall = time.monotonic() if now_wall is None else now_wall
         link = self.links[i][name]
         peers = link.live_peers(now_wall)
         if not peers:
             return
         fc = self.swarm.fcs[i]
-        snap = self.swarm.snapshot(i)
+        now_s = self.swarm.time_s
+        rows = self.swarm.sensor_rows()
+        snap = None
         data = bytearray()
         for msg_id in ids:
-            msg = fc.build(msg_id, self.swarm.time_s, snap)
+            args = batch_args(msg_id, now_s, rows)
+            if args is not None:
+                msg = CONSTRUCTORS[msg_id](*args[i])
+            else:
+                snap = snap or self.swarm.snapshot(i)
+                msg = fc.build(msg_id, now_s, snap)
             data += msg.pack(link.codec)
             self.sent[msg_id] += 1
         self._sendto(link, bytes(data), peers)
         if self.lockstep is not None and name == "companion" and not HIGH_RATE_IDS.isdisjoint(ids):
-            self.lockstep.sent(i, _ms(self.swarm.time_s) * 1000, now_wall)
+            self.lockstep.sent(i, _ms(now_s) * 1000, now_wall)
 
     def _offer(self, i: int) -> None:
         """Lockstep: vehicle i's high-rate state, now, to its companion again (it answers it)."""
@@ -350,51 +370,50 @@ class SitlServer:
                 time.sleep(wait)
 
     async def _run_lockstep(self, stop: asyncio.Event, loop) -> None:
+        """The plant steps in the callbacks that take the companions' answers (``_advance``); this
+        coroutine only watches: the states to offer again, the companions that died, the pace."""
         ls = self.lockstep
-        self._resume = asyncio.Event()
-        fcs = self.swarm.fcs
-        report_wall, report_sim = loop.time(), self.swarm.time_s
-        told_missing = loop.time()
-        started = False
-        while not stop.is_set() and self.swarm.time_s < self.end_s:
-            if not ls.blocked:
-                for _ in range(MAX_BURST_STEPS):
-                    self._step()
-                    if ls.blocked or self.swarm.time_s >= self.end_s:
-                        break
-                await asyncio.sleep(0)  # the answers
-            else:
-                t0 = loop.time()
+        self._wall_start_mono = time.monotonic()
+        self._report = (time.monotonic(), self.swarm.time_s)
+        told_missing = time.monotonic()
+        self._lockstep_running = True
+        try:
+            self._advance()
+            while not stop.is_set() and self.swarm.time_s < self.end_s:
+                await asyncio.sleep(LOCKSTEP_POLL_S)
+                now = time.monotonic()
                 if not ls.started:
                     for i in ls.missing():
                         self._offer(i)
-                self._resume.clear()
-                try:
-                    await asyncio.wait_for(self._resume.wait(), LOCKSTEP_POLL_S)
-                except asyncio.TimeoutError:
-                    pass
-                now = loop.time()
-                ls.waited(now - t0)
-                offer, dropped = ls.overdue(time.monotonic(), self.swarm.time_s)
+                    if now - told_missing > 5.0:
+                        told_missing = now
+                        self.say("lockstep: the clock waits for the companions of vehicles "
+                                 + ", ".join(str(self.swarm.fcs[i].sysid) for i in ls.missing()))
+                offer, dropped = ls.overdue(now, self.swarm.time_s)
                 for i in offer:
                     self._offer(i)
                 for i in dropped:
-                    self.say(f"lockstep: vehicle {fcs[i].sysid}'s companion has not answered for "
+                    self.say(f"lockstep: vehicle {self.swarm.fcs[i].sysid}'s companion has not answered for "
                              f"{ls.options.timeout_s:g} s of wall time: it has died or hung; the vehicle flies on "
                              f"without it (its failsafe counts on simulated time) until it answers again", warning=True)
-                if not ls.started and now - told_missing > 5.0:
-                    told_missing = now
-                    self.say("lockstep: the clock waits for the companions of vehicles "
-                             + ", ".join(str(fcs[i].sysid) for i in ls.missing()))
-            now = loop.time()
-            if ls.started and not started:
-                started = True
-                self._join_wall_s, self._join_sim_s = now - self.wall_start, self.swarm.time_s
-                report_wall, report_sim = now, self.swarm.time_s
-            if now - report_wall >= REPORT_EVERY_S and ls.started:
-                rtf = (self.swarm.time_s - report_sim) / (now - report_wall)
-                self.say(f"lockstep: t = {self.swarm.time_s:.1f} s simulated, real-time factor {rtf:.2f}")
-                report_wall, report_sim = now, self.swarm.time_s
+                if dropped:
+                    self._advance()
+                if ls.started and now - self._report[0] >= REPORT_EVERY_S:
+                    rtf = (self.swarm.time_s - self._report[1]) / (now - self._report[0])
+                    self.say(f"lockstep: t = {self.swarm.time_s:.1f} s simulated, real-time factor {rtf:.2f}")
+                    self._report = (now, self.swarm.time_s)
+        finally:
+            self._lockstep_running = False
+
+    def _advance(self) -> None:
+        """Lockstep: step while nothing is awaited (and the run is not over); a long run of steps
+        with nobody to wait for (every companion dropped) yields to the loop now and then."""
+        ls = self.lockstep
+        for _ in range(MAX_BURST_STEPS):
+            if ls.blocked or self.swarm.time_s >= self.end_s or not self._lockstep_running:
+                return
+            self._step()
+        asyncio.get_running_loop().call_soon(self._advance)
 
     def stats(self) -> dict:
         sim = self.swarm.time_s

@@ -25,8 +25,9 @@ from triswarm.protocol.mavlink import CustomMode
 from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBANCE, DEFAULT_R, DEFAULT_R_BAR
 from triswarm.protocol.rfl import RFL
 
-from .fc import FlightController, Snapshot
+from .fc import FlightController, drain_batteries
 from .physics import QUAT, Plant, quaternion_from_euler
+from .telemetry import Snapshot
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
 
@@ -79,6 +80,7 @@ class SitlSwarm:
         self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
+        self._noise: tuple = (-1, None)  # (the parameters' version, each vehicle's noise sigmas (N, 4))
         self.omega_cmd = np.zeros((n, 3))
         self.alpha_cmd = np.zeros((n, 3))
         self.inner = FormationController(autopilot_design(airframe), n, 1.0 / self.control_dt_s)
@@ -109,8 +111,11 @@ class SitlSwarm:
         if self._rows_step == self.steps:
             return self._rows
         obs = self.plant.observe()
-        sig = np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
-                         fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs])
+        version = sum(fc.params_version for fc in self.fcs)
+        if self._noise[0] != version:
+            self._noise = (version, np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
+                                               fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs]))
+        sig = self._noise[1]
         pos, vel_e, vel_b = obs.position_m, obs.velocity_e_m_s, obs.velocity_b_m_s
         eta, rate = obs.euler_rad, obs.rate_b_rad_s
         if np.any(sig > 0):  # (drawn per step from the seed: the same whenever a snapshot is taken)
@@ -169,19 +174,21 @@ class SitlSwarm:
     def _control_tick(self) -> None:
         now = self.time_s
         internal = []
+        rows = self.sensor_rows()
+        landed = rows.landed.tolist()
         for i, fc in enumerate(self.fcs):
-            snap = self.snapshot(i)
             ref = self.inner_ref[i]
-            fc.tick(now, self.control_dt_s, snap, internal_done=ref is not None and now >= ref.end_s)
+            fc.tick(now, landed[i], internal_done=ref is not None and now >= ref.end_s)
             if fc.mode_changed:
                 fc.mode_changed = False
-                self._start_manoeuvre(i, fc, snap, now)
+                self._start_manoeuvre(i, fc, self.snapshot(i), now)
             if not fc.armed:
                 self.omega_cmd[i] = 0.0
                 self.alpha_cmd[i] = 0.0
                 self.inner_ref[i] = None
             elif fc.mode in INTERNAL_MODES:
                 internal.append(i)
+        drain_batteries(self.fcs, rows.rho, self.control_dt_s)
         if internal:
             self._fly_internal(np.array(internal), now)
 
