@@ -4,6 +4,10 @@ Dynamics are the paper's (24)-(25) for body velocity and body rates, with the at
 unit quaternion (scalar first) instead of Euler angles so the plant never meets the pitch = +-90 deg
 singularity of (26), whatever a flight-controller client commands. Position follows (27).
 
+Forces and torques, and what they do to the body's velocity and rates, are the protocol's
+``dynamics.rigid_body`` (one copy, also behind ``model.state_derivative``); this module adds the
+quaternion kinematics, the integrator, the actuators and the ground.
+
 Actuators, per rotor: motor speed omega in [0, max_rotor_speed] applied at once; servo angle alpha
 clamped to +-servo_limit and applied after a pure transport delay (servo_delay_s, rounded to whole
 physics steps). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
@@ -22,74 +26,38 @@ import numba
 import numpy as np
 
 from triswarm.protocol.airframe import Airframe
+from triswarm.protocol.dynamics import GRAVITY, KF, MASS, MAX_OMEGA, SERVO_LIMIT, airframe_vector, \
+    propulsive_force, rigid_body
 
 POS, VEL_B, QUAT, RATE_B = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
 PLANT_DIM = 13
-_S3 = math.sqrt(3.0) / 2.0
-
-
-def airframe_vector(af: Airframe) -> np.ndarray:
-    """The numbers the kernel needs, in a fixed order."""
-    return np.array([af.mass_kg, af.gravity_m_s2, af.arm_length_m, af.Ixx_kg_m2, af.Iyy_kg_m2, af.Izz_kg_m2,
-                     af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad])
 
 
 @numba.njit(cache=True, fastmath=False)
 def _derivative(s, rho, P, out):
-    m, g, l, Ixx, Iyy, Izz, Iyz, kf, kd = P[0], P[1], P[2], P[3], P[4], P[5], P[6], P[7], P[8]
+    """d/dt of one drone's plant state s (13) under input rho and parameters P."""
     qw, qx, qy, qz = s[6], s[7], s[8], s[9]
     # Body-to-earth rotation of the (normalised) quaternion.
     n2 = qw * qw + qx * qx + qy * qy + qz * qz
     k = 2.0 / n2
-    r00 = 1.0 - k * (qy * qy + qz * qz)
-    r01 = k * (qx * qy - qz * qw)
-    r02 = k * (qx * qz + qy * qw)
-    r10 = k * (qx * qy + qz * qw)
-    r11 = 1.0 - k * (qx * qx + qz * qz)
-    r12 = k * (qy * qz - qx * qw)
-    r20 = k * (qx * qz - qy * qw)
-    r21 = k * (qy * qz + qx * qw)
-    r22 = 1.0 - k * (qx * qx + qy * qy)
-    u, v, w = s[3], s[4], s[5]
+    R = (1.0 - k * (qy * qy + qz * qz), k * (qx * qy - qz * qw), k * (qx * qz + qy * qw),
+         k * (qx * qy + qz * qw), 1.0 - k * (qx * qx + qz * qz), k * (qy * qz - qx * qw),
+         k * (qx * qz - qy * qw), k * (qy * qz + qx * qw), 1.0 - k * (qx * qx + qy * qy))
     p, q, r = s[10], s[11], s[12]
-    # (3), (13), (14): body force / k_f and torque.
-    hf0 = -_S3 * rho[1] + _S3 * rho[2]
-    hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
-    hf2 = rho[3] + rho[4] + rho[5]
-    tx = kf * l * (_S3 * rho[4] - _S3 * rho[5]) - kd * hf0
-    ty = kf * l * (-rho[3] + 0.5 * rho[4] + 0.5 * rho[5]) - kd * hf1
-    tz = kf * l * (rho[0] + rho[1] + rho[2]) - kd * hf2
-    # (24): gravity in the body frame is R^T [0, 0, -g].
-    out[3] = -g * r20 - (q * w - r * v) + kf / m * hf0
-    out[4] = -g * r21 - (r * u - p * w) + kf / m * hf1
-    out[5] = -g * r22 - (p * v - q * u) + kf / m * hf2
-    # (25): I w_dot = tau - w x (I w), I = [[Ixx,0,0],[0,Iyy,-Iyz],[0,-Iyz,Izz]].
-    Iwx = Ixx * p
-    Iwy = Iyy * q - Iyz * r
-    Iwz = -Iyz * q + Izz * r
-    bx = tx - (q * Iwz - r * Iwy)
-    by = ty - (r * Iwx - p * Iwz)
-    bz = tz - (p * Iwy - q * Iwx)
-    det = Iyy * Izz - Iyz * Iyz
-    out[10] = bx / Ixx
-    out[11] = (Izz * by + Iyz * bz) / det
-    out[12] = (Iyz * by + Iyy * bz) / det
+    d = rigid_body(s[3], s[4], s[5], p, q, r, R, rho, P)
+    out[3], out[4], out[5], out[10], out[11], out[12], out[0], out[1], out[2] = d
     # Quaternion kinematics q_dot = 1/2 q (x) [0, w].
     out[6] = 0.5 * (-qx * p - qy * q - qz * r)
     out[7] = 0.5 * (qw * p + qy * r - qz * q)
     out[8] = 0.5 * (qw * q - qx * r + qz * p)
     out[9] = 0.5 * (qw * r + qx * q - qy * p)
-    # (27): earth velocity = R v_b.
-    out[0] = r00 * u + r01 * v + r02 * w
-    out[1] = r10 * u + r11 * v + r12 * w
-    out[2] = r20 * u + r21 * v + r22 * w
 
 
 @numba.njit(cache=True)
 def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out,
              applied):
-    """Advance every drone n_steps physics steps of dt with the commands held. params (N, 11) and
-    delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
+    """Advance every drone n_steps physics steps of dt with the commands held. params (N,
+    ``dynamics.PARAM_DIM``) and delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
     rho_out was last computed from (the sines and cosines are reused while they hold). Returns
     hist_pos."""
     n = state.shape[0]
@@ -103,8 +71,7 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
     for _ in range(n_steps):
         for i in range(n):
             P = params[i]
-            wmax, amax = P[9], P[10]
-            m, g, kf = P[0], P[1], P[7]
+            wmax, amax = P[MAX_OMEGA], P[SERVO_LIMIT]
             # Servo transport delay through a ring buffer; commands are clamped to the servo range.
             for j in range(3):
                 a = alpha_cmd[i, j]
@@ -138,11 +105,9 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                 r20 = k * (qx * qz - qy * qw)
                 r21 = k * (qy * qz + qx * qw)
                 r22 = 1.0 - k * (qx * qx + qy * qy)
-                hf0 = -_S3 * rho[1] + _S3 * rho[2]
-                hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
-                hf2 = rho[3] + rho[4] + rho[5]
-                lift = kf * (r20 * hf0 + r21 * hf1 + r22 * hf2)
-                if lift <= m * g:
+                hf0, hf1, hf2 = propulsive_force(rho)
+                lift = P[KF] * (r20 * hf0 + r21 * hf1 + r22 * hf2)
+                if lift <= P[MASS] * P[GRAVITY]:
                     continue
                 landed[i] = False
             _derivative(s, rho, P, k1)
