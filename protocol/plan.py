@@ -32,7 +32,7 @@ from functools import cached_property
 import numpy as np
 
 from . import graph as graph_mod
-from .airframe import RPM_TO_RAD_S, Airframe, ParameterError
+from .airframe import RPM_TO_RAD_S, Airframe, ParameterError, finite_number
 from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
@@ -333,13 +333,10 @@ class _Fields:
         value = self.get(key, default)
         if value is None:
             raise PlanError(f"{self.where(key)} is required")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise PlanError(f"{self.where(key)} must be a finite number, got {value!r}")
-        if positive and value <= 0:
-            raise PlanError(f"{self.where(key)} must be positive, got {value!r}")
-        if non_negative and value < 0:
-            raise PlanError(f"{self.where(key)} must not be negative, got {value!r}")
-        return float(value)
+        try:
+            return finite_number(self.where(key), value, positive=positive, non_negative=non_negative)
+        except ParameterError as exc:
+            raise PlanError(str(exc)) from None
 
     def array(self, key: str, shape: tuple[int, ...], default=None, *, per_drone: int | None = None) -> np.ndarray:
         """A finite array of the given shape; with per_drone = N, a single row is repeated for every drone."""

@@ -53,22 +53,49 @@ def test_derivative_at_a_yawed_pitched_state_by_hand(airframe):
     assert f[9:12] == pytest.approx([0.0, 2.0 * np.cos(th), -2.0 * np.sin(th)], abs=1e-12)
 
 
+def test_drag_by_hand(airframe):
+    """At rest in a 6 m/s wind from the north (towards -x), level and yawed 90 deg (body x to the
+    west, body y to the south): the drag 1/2 rho C_d A 36 N pushes along earth -x, body +y."""
+    x = np.zeros(12)
+    x[8] = np.pi / 2
+    u = model.hover_input(airframe)
+    rho_air = 1.2
+    f = model.state_derivative(x, u, airframe, wind_e_m_s=[-6.0, 0.0, 0.0], air_density_kg_m3=rho_air)
+    drag_N = 0.5 * rho_air * airframe.drag_coefficient * airframe.frontal_area_m2 * 36.0
+    assert f[0:3] == pytest.approx([0.0, drag_N / airframe.mass_kg, 0.0], abs=1e-12)
+    assert np.abs(f[3:12]).max() < 1e-12
+    # no wind: no drag at any velocity (the paper's model); still air: the drag of the motion
+    x[0:3] = [3.0, -1.0, 2.0]
+    still = model.state_derivative(x, u, airframe, wind_e_m_s=np.zeros(3), air_density_kg_m3=rho_air)
+    none = model.state_derivative(x, u, airframe)
+    v_e = model.rotation_body_to_earth(x[6:9]) @ x[0:3]
+    k = 0.5 * rho_air * airframe.drag_coefficient * airframe.frontal_area_m2
+    drag_b = model.rotation_body_to_earth(x[6:9]).T @ (-k * np.linalg.norm(v_e) * v_e)
+    assert still[0:3] - none[0:3] == pytest.approx(drag_b / airframe.mass_kg, abs=1e-12)
+    assert np.array_equal(still[3:], none[3:])
+
+
 def test_power_balance_along_the_flow(airframe, rng):
     """The mechanical energy 1/2 m |v|^2 + 1/2 w.I w + m g z changes along the model's flow (its
-    directional derivative, by central differences) at the power of the rotors' force and torque:
-    gravity, the Coriolis and the gyroscopic terms do no work."""
+    directional derivative, by central differences) at the power of the rotors' force and torque
+    and of the drag: gravity, the Coriolis and the gyroscopic terms do no work."""
     I = model.inertia_matrix(airframe)
     m, g = airframe.mass_kg, airframe.gravity_m_s2
 
     def energy(x):
         return 0.5 * m * x[0:3] @ x[0:3] + 0.5 * x[3:6] @ I @ x[3:6] + m * g * x[11]
 
+    wind = np.array([4.0, -3.0, 1.0])
+    k = 0.5 * 1.225 * airframe.drag_coefficient * airframe.frontal_area_m2
     for x in random_states(rng, 20):
         u = rng.uniform(-2e5, 2e5, 6)
-        f = model.state_derivative(x, u, airframe)
+        f = model.state_derivative(x, u, airframe, wind_e_m_s=wind)
         h = 1e-6
         dE = (energy(x + h * f) - energy(x - h * f)) / (2 * h)
-        power = (airframe.k_f_N_s2 * model.H_f @ u) @ x[0:3] + (model.torque_matrix(airframe) @ u) @ x[3:6]
+        v_e = model.rotation_body_to_earth(x[6:9]) @ x[0:3]
+        rel = v_e - wind
+        power = (airframe.k_f_N_s2 * model.H_f @ u) @ x[0:3] + (model.torque_matrix(airframe) @ u) @ x[3:6] \
+            - k * np.linalg.norm(rel) * rel @ v_e
         assert dE == pytest.approx(power, rel=1e-6, abs=1e-6)
 
 

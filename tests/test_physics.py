@@ -1,5 +1,5 @@
 """The simulated plant: same physics as the paper's model, RK4 against closed forms, actuator delay
-and limits, ground contact, bad commands."""
+and limits, ground contact, bad commands. (Its wind: test_wind.py.)"""
 
 import numpy as np
 import pytest
@@ -10,18 +10,20 @@ from triswarm.sitl import physics as ph
 from .conftest import random_states
 
 
-def test_plant_derivative_equals_the_paper_model(airframe, rng):
-    """The plant (quaternion attitude) and the model (Euler angles) share (24), (25) and (27)
+@pytest.mark.parametrize("windy", [False, True])
+def test_plant_derivative_equals_the_paper_model(airframe, rng, windy):
+    """The plant (quaternion attitude) and the model (Euler angles) share (24), (25), (27) and the drag
     (``protocol.dynamics``): what differs, the attitude, must agree too. (This also fails when numba's
     cache of the plant holds an older protocol/dynamics.py: delete the *.nbi and *.nbc files.)"""
-    P = ph.airframe_vector(airframe)
+    P = ph.airframe_vector(airframe, 1.225 if windy else 0.0)
     for x in random_states(rng, 30, max_pitch=1.4):
         u = rng.uniform(-1e5, 1e5, 6)
-        f = model.state_derivative(x, u, airframe)
+        wind = rng.uniform(-10, 10, (1, 3)) if windy else None
+        f = model.state_derivative(x, u, airframe, None if wind is None else wind[0])
         s = np.zeros(13)
         s[ph.POS], s[ph.VEL_B], s[ph.QUAT], s[ph.RATE_B] = x[9:12], x[0:3], ph.quaternion_from_euler(x[6:9]), x[3:6]
         out = np.zeros(13)
-        ph._derivative(s, u, P, out)
+        ph._derivative(s, u, P, wind, 0, out)
         assert np.allclose(out[ph.VEL_B], f[0:3], rtol=1e-12, atol=1e-9)
         assert np.allclose(out[ph.RATE_B], f[3:6], rtol=1e-12, atol=1e-9)
         assert np.allclose(out[ph.POS], f[9:12], rtol=1e-12, atol=1e-9)
