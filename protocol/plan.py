@@ -19,6 +19,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
     [controller]      rate_hz, thrust_adaptation_rate_1_s
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
+    [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
 from .separation import Approach, closest_approach
 from .sizing import SizingError, resized_spec
+from .wind import Wind, wind_from_table
 
 
 class PlanError(ValueError):
@@ -120,6 +122,8 @@ class Plan:
     source: str = "plan"
     spec: dict = field(default_factory=dict, compare=False, repr=False)
     """The dict the plan was built from (to rebuild it for another number of drones)."""
+    wind: Wind | None = None
+    """The air a simulation of the plan flies in; None: no air (the paper's model)."""
 
     @cached_property
     def rfl(self) -> RFL:
@@ -533,8 +537,13 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
         raise PlanError(f"{source}: duration_s ({duration:g} s) must be longer than the entry and its settling "
                         f"(entry.climb_s + entry.blend_s + check.settle_s = {settled:g} s), so that a flight has a "
                         f"settled window to be judged over")
+    try:
+        wind = wind_from_table(top.get("wind")) if "wind" in data else None
+    except ParameterError as exc:
+        raise PlanError(f"{source}: {exc}") from None
     top.done()
-    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, checks, duration, source, dict(data))
+    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, checks, duration, source, dict(data),
+                wind)
 
 
 def default_min_separation_m(af: Airframe) -> float:
@@ -550,9 +559,9 @@ def spec_from_toml(text: str, source: str) -> dict:
         raise PlanError(f"{source}: not valid TOML ({exc})") from None
 
 
-IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry", "duration_s", "check"})
-"""What a plan put in force during a flight may change: the formation (and its name, length and
-what plan check holds it to)."""
+IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry", "duration_s", "check", "wind"})
+"""What a plan put in force during a flight may change: the formation (and its name, length, what
+plan check holds it to and the wind a simulation of it assumes)."""
 
 
 def in_flight_change_problem(flying: dict, new: dict) -> str | None:
