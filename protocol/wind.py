@@ -255,14 +255,6 @@ def _component(sigma: float, T: float, first_order: bool = False):
     return A, B, c * (sigma / math.sqrt(c @ P @ c)), P
 
 
-def correlation_closed_form(sigma_m_s: np.ndarray, time_constants_s: np.ndarray, lag_s: float) -> np.ndarray:
-    """The Dryden correlations of u, v, w at a time lag (module docstring): sigma_u^2 e^(-t/T_u),
-    sigma^2 e^(-t/T) (1 - t / 2T) for v and w."""
-    x = lag_s / np.asarray(time_constants_s)
-    s2 = np.asarray(sigma_m_s) ** 2
-    return s2 * np.exp(-x) * np.array([1.0, 1.0 - x[1] / 2.0, 1.0 - x[2] / 2.0])
-
-
 def wind_from_table(table) -> Wind:
     """A plan's ``[wind]`` table (``docs/plans.md``) as a Wind; ParameterError naming the field."""
     if not isinstance(table, dict):
