@@ -17,12 +17,14 @@ import dataclasses
 import os
 import platform
 import time
+from pathlib import Path
 
 from triswarm.gcs.scenarios import load_plan
 from triswarm.protocol import metrics
 from triswarm.protocol.wind import TURBULENCE_SIGMA_W_M_S, Gust, Wind
 from triswarm.sitl.simulation import SimConfig, simulate
 
+ROOT = Path(__file__).resolve().parents[2]
 BOUNDS = {"paper": (0.10, 0.02), "wide": (0.25, 0.05)}
 SCENARIOS = {"paper-hexagon": ("paper-hexagon", None), "paper-hexagon-24": ("paper-hexagon", 24),
              "still-hexagon": ("examples/still-hexagon.toml", None)}
@@ -79,7 +81,7 @@ def main() -> None:
     summary = []
     for label in args.scenarios.split(","):
         source, drones = SCENARIOS[label.strip()]
-        plan = load_plan(source, drones)
+        plan = load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones)
         scenario = f"--scenario {source}" + (f" --drones {drones}" if drones else "")
         print(f"\n### {label}: {plan.n_agents} drones, settled window from {plan.settled_from_s:g} s to "
               f"{plan.duration_s:g} s\n")
