@@ -16,6 +16,7 @@ from triswarm.protocol.frames import DEFAULT_HOME
 
 from .errors import UserError, console, err_console, short_number, user_errors
 from .plan_cmd import plan_app
+from .wind_options import Gusts, Turbulence, WindFrom, WindSpeed, wind_from_options
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
                   help="triswarm: formation flight for swarms of tri-rotor drones.")
@@ -65,7 +66,11 @@ def sim(
     max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
     noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
     mismatch: Annotated[float, typer.Option(help="Plant mass/inertia +PCT %, k_f -PCT/2 % against the controller's model.")] = 0.0,
-    seed: Annotated[int, typer.Option(help="Seed for start positions and noise.")] = 0,
+    seed: Annotated[int, typer.Option(help="Seed for start positions, noise and turbulence.")] = 0,
+    wind_m_s: WindSpeed = None,
+    wind_from_deg: WindFrom = None,
+    turbulence: Turbulence = None,
+    gust: Gusts = None,
     physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
     log_hz: Annotated[float, typer.Option(help="Telemetry rows per second per drone.")] = 50.0,
     position_bound_m: Annotated[float, typer.Option(help="Position bound for the verdict [m].")] = 0.10,
@@ -96,9 +101,11 @@ def sim(
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(scenario, drones)
+        wind = wind_from_options(plan.wind, wind_m_s, wind_from_deg, turbulence, gust)
         duration = plan.duration_s if duration is None else duration
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
-                           max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed)
+                           max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
+                           wind=wind)
         design = plan.check_formation(horizon_s=duration)
         problems = plan.safety_problems(horizon_s=duration)
         if problems and not force:
@@ -138,7 +145,7 @@ def sim(
         "servo_delay_s": result.plant_airframe.servo_delay_s, "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),
         "controller_servo_delay_s": plan.airframe.servo_delay_s,
         "noise": None if config.noise is None else {"position_m": config.noise.position_m, "attitude_rad": config.noise.attitude_rad},
-        "mismatch_pct": mismatch, "seed": seed, "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
+        "mismatch_pct": mismatch, "seed": seed, "wind": None if wind is None else wind.describe(), "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
         "start_position_m": result.start_position_m.tolist(),
     }
     report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run, per_drone=per_drone)
@@ -205,6 +212,11 @@ def sitl_up(
                                                 "it is. The clock starts when every companion answers.")] = False,
     lockstep_timeout_s: Annotated[float, typer.Option(help="With --lockstep: a companion silent this long (wall "
                                                            "time) has died; its vehicle flies on without it [s].")] = 10.0,
+    wind_m_s: WindSpeed = None,
+    wind_from_deg: WindFrom = None,
+    turbulence: Turbulence = None,
+    gust: Gusts = None,
+    seed: Annotated[int, typer.Option(help="Seed for sensor noise and turbulence.")] = 0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
     """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
@@ -236,7 +248,8 @@ def sitl_up(
                 raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
-                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None)
+                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None,
+                           seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust))
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)

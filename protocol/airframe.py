@@ -17,6 +17,18 @@ class ParameterError(ValueError):
     """A physical or design parameter a user supplied is not usable (one sentence)."""
 
 
+def finite_number(what: str, value, *, positive: bool = False, non_negative: bool = False) -> float:
+    """``value`` as a float, or ParameterError saying what ``what`` must be (a finite number, positive
+    or not negative; a bool is no number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ParameterError(f"{what} must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise ParameterError(f"{what} must be positive, got {value!r}")
+    if non_negative and value < 0:
+        raise ParameterError(f"{what} must not be negative, got {value!r}")
+    return float(value)
+
+
 @dataclass(frozen=True)
 class Airframe:
     """A tri-rotor with three independently tilting rotors (paper Section 3, Table 1)."""
@@ -46,13 +58,24 @@ class Airframe:
     The case study needs more than about +-95 deg (errata); 120 deg leaves a margin."""
     servo_delay_s: float = 0.01
     """Transport delay from a servo command to the servo angle (0.01 s in the paper)."""
+    drag_coefficient: float = 1.0
+    """Drag coefficient C_d of the body (dimensionless), on frontal_area_m2: the body's drag is
+    1/2 rho_air C_d A |v_rel| v_rel against its velocity relative to the air. Not in the paper; only
+    a simulated plant in wind uses it. 1.0 is a bluff body of plates and cylinders crosswise to the
+    flow (Hoerner, Fluid-Dynamic Drag, 1965: 1.0 to 1.2)."""
+    frontal_area_m2: float = 0.02
+    """Area the body shows the air [m^2], the same in every direction: a 0.5 kg frame with 0.23 m
+    arms, its hub (about 0.12 m x 0.06 m seen edge-on), arms and motors; the rotor discs are not
+    counted (their own drag is not modelled). With C_d = 1 the drag is 1.2 N at 10 m/s in sea-level
+    air, a quarter of the weight."""
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ParameterError(f"airframe parameter {field.name} must be a finite number, got {value!r}")
-            allowed_zero = field.name in ("Iyz_kg_m2", "servo_delay_s", "k_d_N_m_s2")
+            allowed_zero = field.name in ("Iyz_kg_m2", "servo_delay_s", "k_d_N_m_s2", "drag_coefficient",
+                                           "frontal_area_m2")
             if field.name == "Iyz_kg_m2":
                 continue
             if value < 0 or (value == 0 and not allowed_zero):

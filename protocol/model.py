@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import dynamics
 from .airframe import Airframe
+from .wind import SEA_LEVEL_AIR_DENSITY_KG_M3
 
 # Slices of the state vector (28).
 BODY_VEL = slice(0, 3)
@@ -142,23 +144,25 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def state_derivative(x: np.ndarray, u: np.ndarray, af: Airframe) -> np.ndarray:
-    """(24)-(27): dx/dt for state x (..., 12) and input u = rho (..., 6)."""
-    x = np.asarray(x)
-    u = np.asarray(u)
-    v_b, w_b, eta = x[..., BODY_VEL], x[..., BODY_RATE], x[..., EULER]
-    g = af.gravity_m_s2
-    I = inertia_matrix(af)
-    G = input_matrix(af)
-    R = rotation_body_to_earth(eta)
-    # Gravity in body frame g*Theta = R^T [0, 0, -g].
-    g_body = -g * R[..., 2, :]
-    v_dot = g_body - _cross(w_b, v_b) + u @ G[0:3].T
-    Iw = w_b @ I.T
-    w_dot = -np.linalg.solve(I, _cross(w_b, Iw)[..., None])[..., 0] + u @ G[3:6].T
+def state_derivative(x: np.ndarray, u: np.ndarray, af: Airframe, wind_e_m_s: np.ndarray | None = None,
+                     air_density_kg_m3: float = SEA_LEVEL_AIR_DENSITY_KG_M3) -> np.ndarray:
+    """(24)-(27): dx/dt for state x (..., 12) and input u = rho (..., 6). Without a wind this is the
+    paper's model; with one (earth frame [m/s], (..., 3)) the body also feels the drag of the air
+    (``dynamics``). (24), (25) and (27) are ``dynamics.rigid_body``, the plant's own; (26) is here."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    wind = np.zeros(3) if wind_e_m_s is None else np.asarray(wind_e_m_s, dtype=float)
+    lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], wind.shape[:-1])
+    rows = (-1,) if lead else (1,)
+    x = np.ascontiguousarray(np.broadcast_to(x, lead + (STATE_DIM,)).reshape(rows + (STATE_DIM,)))
+    u = np.ascontiguousarray(np.broadcast_to(u, lead + (INPUT_DIM,)).reshape(rows + (INPUT_DIM,)))
+    wind = np.ascontiguousarray(np.broadcast_to(wind, lead + (3,)).reshape(rows + (3,)))
+    P = dynamics.airframe_vector(af, 0.0 if wind_e_m_s is None else air_density_kg_m3)
+    eta, w_b = x[:, EULER], x[:, BODY_RATE]
+    out = np.empty((x.shape[0], 9))
+    dynamics.rigid_body_rows(np.ascontiguousarray(x[:, BODY_VEL]), np.ascontiguousarray(w_b),
+                             rotation_body_to_earth(eta), u, P, wind, out)
     eta_dot = (euler_rate_matrix(eta) @ w_b[..., None])[..., 0]
-    pos_dot = (R @ v_b[..., None])[..., 0]
-    return np.concatenate([v_dot, w_dot, eta_dot, pos_dot], axis=-1)
+    return np.concatenate([out[:, 0:6], eta_dot, out[:, 6:9]], axis=-1).reshape(lead + (STATE_DIM,))
 
 
 def actuator_map(omega_rad_s: np.ndarray, alpha_rad: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
     [controller]      rate_hz, thrust_adaptation_rate_1_s
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
+    [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from functools import cached_property
 import numpy as np
 
 from . import graph as graph_mod
-from .airframe import RPM_TO_RAD_S, Airframe, ParameterError
+from .airframe import RPM_TO_RAD_S, Airframe, ParameterError, finite_number
 from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
@@ -42,6 +43,7 @@ from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
 from .separation import Approach, closest_approach
 from .sizing import SizingError, resized_spec
+from .wind import Wind, wind_from_table
 
 
 class PlanError(ValueError):
@@ -120,6 +122,8 @@ class Plan:
     source: str = "plan"
     spec: dict = field(default_factory=dict, compare=False, repr=False)
     """The dict the plan was built from (to rebuild it for another number of drones)."""
+    wind: Wind | None = None
+    """The air a simulation of the plan flies in; None: no air (the paper's model)."""
 
     @cached_property
     def rfl(self) -> RFL:
@@ -333,13 +337,10 @@ class _Fields:
         value = self.get(key, default)
         if value is None:
             raise PlanError(f"{self.where(key)} is required")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise PlanError(f"{self.where(key)} must be a finite number, got {value!r}")
-        if positive and value <= 0:
-            raise PlanError(f"{self.where(key)} must be positive, got {value!r}")
-        if non_negative and value < 0:
-            raise PlanError(f"{self.where(key)} must not be negative, got {value!r}")
-        return float(value)
+        try:
+            return finite_number(self.where(key), value, positive=positive, non_negative=non_negative)
+        except ParameterError as exc:
+            raise PlanError(str(exc)) from None
 
     def array(self, key: str, shape: tuple[int, ...], default=None, *, per_drone: int | None = None) -> np.ndarray:
         """A finite array of the given shape; with per_drone = N, a single row is repeated for every drone."""
@@ -536,8 +537,13 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
         raise PlanError(f"{source}: duration_s ({duration:g} s) must be longer than the entry and its settling "
                         f"(entry.climb_s + entry.blend_s + check.settle_s = {settled:g} s), so that a flight has a "
                         f"settled window to be judged over")
+    try:
+        wind = wind_from_table(top.get("wind")) if "wind" in data else None
+    except ParameterError as exc:
+        raise PlanError(f"{source}: {exc}") from None
     top.done()
-    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, checks, duration, source, dict(data))
+    return Plan(name, n, af, leader, formation, entry, schedule, weights, ctrl, checks, duration, source, dict(data),
+                wind)
 
 
 def default_min_separation_m(af: Airframe) -> float:
@@ -553,9 +559,9 @@ def spec_from_toml(text: str, source: str) -> dict:
         raise PlanError(f"{source}: not valid TOML ({exc})") from None
 
 
-IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry", "duration_s", "check"})
-"""What a plan put in force during a flight may change: the formation (and its name, length and
-what plan check holds it to)."""
+IN_FLIGHT_CHANGEABLE = frozenset({"name", "formation", "entry", "duration_s", "check", "wind"})
+"""What a plan put in force during a flight may change: the formation (and its name, length, what
+plan check holds it to and the wind a simulation of it assumes)."""
 
 
 def in_flight_change_problem(flying: dict, new: dict) -> str | None:

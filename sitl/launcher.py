@@ -12,6 +12,7 @@ import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
+from triswarm.protocol.wind import Wind
 
 from .fc import LINK_PREFIX
 from .lockstep import LockstepOptions
@@ -40,6 +41,8 @@ class SitlOptions:
     """Parameter values every vehicle starts with (e.g. sensor noise), as (name, value)."""
     lockstep: LockstepOptions | None = None
     """Step the clock by the companions' answers instead of the wall clock (``lockstep.py``)."""
+    wind: Wind | None = None
+    """The air the vehicles fly in (``protocol.wind``), its turbulence seeded by ``seed``; None: no air."""
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -58,7 +61,7 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
-                      seed=opts.seed, first_id=opts.first_id)
+                      seed=opts.seed, first_id=opts.first_id, wind=opts.wind)
     for i, fc in enumerate(swarm.fcs):
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)

@@ -4,6 +4,16 @@ Dynamics are the paper's (24)-(25) for body velocity and body rates, with the at
 unit quaternion (scalar first) instead of Euler angles so the plant never meets the pitch = +-90 deg
 singularity of (26), whatever a flight-controller client commands. Position follows (27).
 
+Forces and torques, and what they do to the body's velocity and rates, are the protocol's
+``dynamics.rigid_body`` (one copy, also behind ``model.state_derivative``); this module adds the
+quaternion kinematics, the integrator, the actuators, the ground and the wind.
+
+Wind (``protocol.wind``): with a ``Wind`` the body feels drag against its velocity relative to the
+air: the steady wind, every gust and each drone's own Dryden turbulence, whose noise comes from a
+Generator seeded by ``wind_seed`` and drawn a step at a time (the same seed gives the same wind
+however the steps are grouped into ``advance`` calls). The wind is taken at the start of each
+physics step and held through it. Without a Wind there is no air at all: the paper's model, exactly.
+
 Actuators, per rotor: motor speed omega in [0, max_rotor_speed] applied at once; servo angle alpha
 clamped to +-servo_limit and applied after a pure transport delay (servo_delay_s, rounded to whole
 physics steps). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
@@ -22,76 +32,63 @@ import numba
 import numpy as np
 
 from triswarm.protocol.airframe import Airframe
+from triswarm.protocol.dynamics import GRAVITY, KF, MASS, MAX_OMEGA, SERVO_LIMIT, airframe_vector, drag, \
+    propulsive_force, rigid_body
+from triswarm.protocol.wind import TURBULENCE_STATES, Dryden, Wind, gusts_at, turbulence_step
 
 POS, VEL_B, QUAT, RATE_B = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
 PLANT_DIM = 13
-_S3 = math.sqrt(3.0) / 2.0
-
-
-def airframe_vector(af: Airframe) -> np.ndarray:
-    """The numbers the kernel needs, in a fixed order."""
-    return np.array([af.mass_kg, af.gravity_m_s2, af.arm_length_m, af.Ixx_kg_m2, af.Iyy_kg_m2, af.Izz_kg_m2,
-                     af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad])
 
 
 @numba.njit(cache=True, fastmath=False)
-def _derivative(s, rho, P, out):
-    m, g, l, Ixx, Iyy, Izz, Iyz, kf, kd = P[0], P[1], P[2], P[3], P[4], P[5], P[6], P[7], P[8]
+def _derivative(s, rho, P, wind_now, i, out):
+    """d/dt of one drone's plant state s (13) under input rho and parameters P, in the wind
+    wind_now[i] [m/s], or with wind_now None in no air (numba compiles that case without the drag)."""
     qw, qx, qy, qz = s[6], s[7], s[8], s[9]
     # Body-to-earth rotation of the (normalised) quaternion.
     n2 = qw * qw + qx * qx + qy * qy + qz * qz
     k = 2.0 / n2
-    r00 = 1.0 - k * (qy * qy + qz * qz)
-    r01 = k * (qx * qy - qz * qw)
-    r02 = k * (qx * qz + qy * qw)
-    r10 = k * (qx * qy + qz * qw)
-    r11 = 1.0 - k * (qx * qx + qz * qz)
-    r12 = k * (qy * qz - qx * qw)
-    r20 = k * (qx * qz - qy * qw)
-    r21 = k * (qy * qz + qx * qw)
-    r22 = 1.0 - k * (qx * qx + qy * qy)
-    u, v, w = s[3], s[4], s[5]
+    R = (1.0 - k * (qy * qy + qz * qz), k * (qx * qy - qz * qw), k * (qx * qz + qy * qw),
+         k * (qx * qy + qz * qw), 1.0 - k * (qx * qx + qz * qz), k * (qy * qz - qx * qw),
+         k * (qx * qz - qy * qw), k * (qy * qz + qx * qw), 1.0 - k * (qx * qx + qy * qy))
     p, q, r = s[10], s[11], s[12]
-    # (3), (13), (14): body force / k_f and torque.
-    hf0 = -_S3 * rho[1] + _S3 * rho[2]
-    hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
-    hf2 = rho[3] + rho[4] + rho[5]
-    tx = kf * l * (_S3 * rho[4] - _S3 * rho[5]) - kd * hf0
-    ty = kf * l * (-rho[3] + 0.5 * rho[4] + 0.5 * rho[5]) - kd * hf1
-    tz = kf * l * (rho[0] + rho[1] + rho[2]) - kd * hf2
-    # (24): gravity in the body frame is R^T [0, 0, -g].
-    out[3] = -g * r20 - (q * w - r * v) + kf / m * hf0
-    out[4] = -g * r21 - (r * u - p * w) + kf / m * hf1
-    out[5] = -g * r22 - (p * v - q * u) + kf / m * hf2
-    # (25): I w_dot = tau - w x (I w), I = [[Ixx,0,0],[0,Iyy,-Iyz],[0,-Iyz,Izz]].
-    Iwx = Ixx * p
-    Iwy = Iyy * q - Iyz * r
-    Iwz = -Iyz * q + Izz * r
-    bx = tx - (q * Iwz - r * Iwy)
-    by = ty - (r * Iwx - p * Iwz)
-    bz = tz - (p * Iwy - q * Iwx)
-    det = Iyy * Izz - Iyz * Iyz
-    out[10] = bx / Ixx
-    out[11] = (Izz * by + Iyz * bz) / det
-    out[12] = (Iyz * by + Iyy * bz) / det
+    d = rigid_body(s[3], s[4], s[5], p, q, r, R, rho, P)
+    out[3], out[4], out[5], out[10], out[11], out[12], out[0], out[1], out[2] = d
+    if wind_now is not None:
+        a = drag((d[6], d[7], d[8]), R, P, (wind_now[i, 0], wind_now[i, 1], wind_now[i, 2]))
+        out[3] += a[0]
+        out[4] += a[1]
+        out[5] += a[2]
     # Quaternion kinematics q_dot = 1/2 q (x) [0, w].
     out[6] = 0.5 * (-qx * p - qy * q - qz * r)
     out[7] = 0.5 * (qw * p + qy * r - qz * q)
     out[8] = 0.5 * (qw * q - qx * r + qz * p)
     out[9] = 0.5 * (qw * r + qx * q - qy * p)
-    # (27): earth velocity = R v_b.
-    out[0] = r00 * u + r01 * v + r02 * w
-    out[1] = r10 * u + r11 * v + r12 * w
-    out[2] = r20 * u + r21 * v + r22 * w
+
+
+@numba.njit(cache=True)
+def _wind_at(air, step, i, dt, wind_now, scratch):
+    """Drone i's wind for this step (steady, gusts, its turbulence), earth frame [m/s], into
+    wind_now[i]; its Dryden state moves on a step."""
+    step0, steady, gusts, turb_x, Phi, L, C, noise = air
+    gx, gy, gz = gusts_at((step0 + step) * dt, gusts)
+    wind = wind_now[i]
+    wind[0], wind[1], wind[2] = steady[0] + gx, steady[1] + gy, steady[2] + gz
+    if noise.shape[0] > 0:
+        tx, ty, tz = turbulence_step(turb_x[i], noise[step, i], Phi, L, C, scratch)
+        wind[0] += tx
+        wind[1] += ty
+        wind[2] += tz
 
 
 @numba.njit(cache=True)
 def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out,
-             applied):
-    """Advance every drone n_steps physics steps of dt with the commands held. params (N, 11) and
-    delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
-    rho_out was last computed from (the sines and cosines are reused while they hold). Returns
-    hist_pos."""
+             applied, air, wind_now):
+    """Advance every drone n_steps physics steps of dt with the commands held. params (N,
+    ``dynamics.PARAM_DIM``) and delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
+    rho_out was last computed from (the sines and cosines are reused while they hold). ``air`` is
+    ``_Air.kernel_args`` and wind_now (N, 3) the wind each drone feels, both None in no air (numba
+    compiles that case without any of the wind). Returns hist_pos."""
     n = state.shape[0]
     H = alpha_hist.shape[1]
     k1 = np.empty(13)
@@ -100,11 +97,13 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
     k4 = np.empty(13)
     tmp = np.empty(13)
     rho = np.empty(6)
-    for _ in range(n_steps):
+    scratch = np.empty(TURBULENCE_STATES)
+    for step in range(n_steps):
         for i in range(n):
+            if air is not None:
+                _wind_at(air, step, i, dt, wind_now, scratch)
             P = params[i]
-            wmax, amax = P[9], P[10]
-            m, g, kf = P[0], P[1], P[7]
+            wmax, amax = P[MAX_OMEGA], P[SERVO_LIMIT]
             # Servo transport delay through a ring buffer; commands are clamped to the servo range.
             for j in range(3):
                 a = alpha_cmd[i, j]
@@ -138,23 +137,21 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                 r20 = k * (qx * qz - qy * qw)
                 r21 = k * (qy * qz + qx * qw)
                 r22 = 1.0 - k * (qx * qx + qy * qy)
-                hf0 = -_S3 * rho[1] + _S3 * rho[2]
-                hf1 = rho[0] - 0.5 * rho[1] - 0.5 * rho[2]
-                hf2 = rho[3] + rho[4] + rho[5]
-                lift = kf * (r20 * hf0 + r21 * hf1 + r22 * hf2)
-                if lift <= m * g:
+                hf0, hf1, hf2 = propulsive_force(rho)
+                lift = P[KF] * (r20 * hf0 + r21 * hf1 + r22 * hf2)
+                if lift <= P[MASS] * P[GRAVITY]:
                     continue
                 landed[i] = False
-            _derivative(s, rho, P, k1)
+            _derivative(s, rho, P, wind_now, i, k1)
             for j in range(13):
                 tmp[j] = s[j] + 0.5 * dt * k1[j]
-            _derivative(tmp, rho, P, k2)
+            _derivative(tmp, rho, P, wind_now, i, k2)
             for j in range(13):
                 tmp[j] = s[j] + 0.5 * dt * k2[j]
-            _derivative(tmp, rho, P, k3)
+            _derivative(tmp, rho, P, wind_now, i, k3)
             for j in range(13):
                 tmp[j] = s[j] + dt * k3[j]
-            _derivative(tmp, rho, P, k4)
+            _derivative(tmp, rho, P, wind_now, i, k4)
             for j in range(13):
                 s[j] += dt / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
             qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
@@ -242,11 +239,47 @@ class PlantState:
         return np.concatenate([self.velocity_b_m_s, self.rate_b_rad_s, self.euler_rad, self.position_m], axis=1)
 
 
+class _Air:
+    """The wind's state for the kernel: the steady wind, the gusts, each drone's Dryden state and
+    the noise that drives it, drawn from ``rng`` a step at a time."""
+
+    WIND_STREAM = 0x57494E44
+    """Mixed into the seed, so the wind's numbers are not those of another user of the same seed."""
+
+    def __init__(self, wind: Wind | None, n: int, dt_s: float, seed: int) -> None:
+        self.wind = wind
+        self.wind_now = np.zeros((n, 3))
+        self.turbulent = wind is not None and wind.turbulence_sigma_w_m_s > 0
+        self.noise = np.zeros((0, n, TURBULENCE_STATES))
+        self.turb_x = np.zeros((n, TURBULENCE_STATES))
+        Phi = L = np.zeros((TURBULENCE_STATES, TURBULENCE_STATES))
+        C = np.zeros((3, TURBULENCE_STATES))
+        if self.turbulent:
+            self.rng = np.random.default_rng([seed, self.WIND_STREAM])
+            dryden = Dryden.of(wind, dt_s)
+            Phi, L, C = dryden.Phi, dryden.L, dryden.C
+            # every drone starts in the stationary distribution of its filters
+            w, V = np.linalg.eigh(dryden.P)
+            self.turb_x[:] = self.rng.standard_normal((n, TURBULENCE_STATES)) @ (V * np.sqrt(np.clip(w, 0, None))).T
+        if wind is not None:
+            self.wind_now[:] = wind.steady_e_m_s
+            self._fixed = (wind.steady_e_m_s, wind.gust_table(), self.turb_x, Phi, L, C)
+
+    def kernel_args(self, step0: int, n_steps: int) -> tuple | None:
+        """The kernel's ``air`` for n_steps from step0: None in no air."""
+        if self.wind is None:
+            return None
+        if self.turbulent:
+            self.noise = self.rng.standard_normal((n_steps, self.turb_x.shape[0], TURBULENCE_STATES))
+        steady, gusts, turb_x, Phi, L, C = self._fixed
+        return (step0, steady, gusts, turb_x, Phi, L, C, self.noise)
+
+
 class Plant:
-    """N tri-rotors integrated with RK4 at a fixed physics step."""
+    """N tri-rotors integrated with RK4 at a fixed physics step, in a wind or in no air at all."""
 
     def __init__(self, airframe: Airframe, n_drones: int, dt_s: float = 1e-3,
-                 servo_delay_s: float | None = None) -> None:
+                 servo_delay_s: float | None = None, wind: Wind | None = None, wind_seed: int = 0) -> None:
         if not (dt_s > 0 and math.isfinite(dt_s)):
             raise ValueError(f"physics step must be a positive number of seconds, got {dt_s!r}")
         self.dt_s = float(dt_s)
@@ -254,7 +287,10 @@ class Plant:
         if servo_delay_s is not None:
             airframe = airframe.replace(servo_delay_s=servo_delay_s)
         self.airframes = [airframe] * self.n
-        self.params = np.tile(airframe_vector(airframe), (self.n, 1))
+        self.air_density_kg_m3 = 0.0 if wind is None else wind.air_density_kg_m3
+        """0 without a wind: no drag."""
+        self.params = np.tile(airframe_vector(airframe, self.air_density_kg_m3), (self.n, 1))
+        self._air = _Air(wind, self.n, self.dt_s, wind_seed)
         self.delay_steps = np.full(self.n, self._steps_of(airframe.servo_delay_s), dtype=np.int64)
         self.state = np.zeros((self.n, PLANT_DIM))
         self.state[:, 6] = 1.0
@@ -277,7 +313,7 @@ class Plant:
     def set_airframe(self, i: int, af: Airframe) -> None:
         """Change drone i's physical parameters (e.g. a parameter set over MAVLink)."""
         self.airframes[i] = af
-        self.params[i] = airframe_vector(af)
+        self.params[i] = airframe_vector(af, self.air_density_kg_m3)
         steps = self._steps_of(af.servo_delay_s)
         if steps + 1 > self.alpha_hist.shape[1]:
             # a longer history: every drone keeps the angle its servos hold now
@@ -315,9 +351,19 @@ class Plant:
     def advance(self, n_steps: int) -> None:
         self.hist_pos = _advance(self.state, self.landed, self.omega_cmd, self.alpha_cmd, self.alpha_hist,
                                  self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho,
-                                 self._applied)
+                                 self._applied, self._air.kernel_args(self.steps, int(n_steps)),
+                                 None if self._air.wind is None else self._air.wind_now)
         self.steps += int(n_steps)
         self.time_s = self.steps * self.dt_s
+
+    @property
+    def wind(self) -> Wind | None:
+        return self._air.wind
+
+    @property
+    def wind_e_m_s(self) -> np.ndarray:
+        """The wind each drone felt during the last physics step, earth frame [m/s], (N, 3)."""
+        return self._air.wind_now
 
     def output(self) -> np.ndarray:
         """What the controller measures, noise-free: y = (eta [rad], lambda [m]) per drone, (N, 6)."""

@@ -19,6 +19,7 @@ from triswarm.protocol.agent import protocol_input, reference_at
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import Plan
+from triswarm.protocol.wind import Wind
 
 from .physics import Plant
 
@@ -52,6 +53,9 @@ class SimConfig:
     seed: int = 0
     start_position_m: np.ndarray | None = None
     """(N, 3) start positions; default: resting on the ground within 3 m of the origin."""
+    wind: Wind | None = None
+    """The air the plant flies in (its turbulence seeded by ``seed``); None: the plan's ``[wind]``,
+    and no air at all (the paper's model) when the plan has none."""
 
     def __post_init__(self) -> None:
         for name in ("duration_s", "physics_hz", "log_hz"):
@@ -109,6 +113,11 @@ def plant_airframe(plan: Plan, config: SimConfig) -> Airframe:
     return af.replace(**changes) if changes else af
 
 
+def flown_wind(plan: Plan, config: SimConfig) -> Wind | None:
+    """The wind a simulation flies in: the config's, else the plan's."""
+    return config.wind if config.wind is not None else plan.wind
+
+
 def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimResult:
     """Fly the plan from rest on the ground for ``config.duration_s``."""
     design = plan.check_formation(horizon_s=config.duration_s)
@@ -123,7 +132,7 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     rng = np.random.default_rng(config.seed + 1)
 
     af_plant = plant_airframe(plan, config)
-    plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz)
+    plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz, wind=flown_wind(plan, config), wind_seed=config.seed)
     ctrl = FormationController(design, n, rate, delay_s=config.controller_delay_s,
                                thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
     plant.reset(start)

@@ -24,6 +24,7 @@ from triswarm.protocol.graph import Schedule, Topology
 from triswarm.protocol.mavlink import CustomMode
 from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBANCE, DEFAULT_R, DEFAULT_R_BAR
 from triswarm.protocol.rfl import RFL
+from triswarm.protocol.wind import Wind
 
 from .fc import FlightController, drain_batteries
 from .physics import QUAT, Plant, quaternion_from_euler
@@ -60,7 +61,7 @@ def autopilot_design(airframe: Airframe):
 class SitlSwarm:
     def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
                  physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
-                 boot_unix_s: float | None = None, first_id: int = 1) -> None:
+                 boot_unix_s: float | None = None, first_id: int = 1, wind: Wind | None = None) -> None:
         if n < 1:
             raise ValueError(f"a swarm needs at least one vehicle, got {n}")
         self.n = n
@@ -72,7 +73,7 @@ class SitlSwarm:
         if not 1 <= first_id <= 256 - n:
             raise ValueError(f"system ids {first_id}..{first_id + n - 1} are not all within 1..255")
         self.start_m = ground_grid(n, spacing_m, first_id)
-        self.plant = Plant(airframe, n, dt_s=dt_s)
+        self.plant = Plant(airframe, n, dt_s=dt_s, wind=wind, wind_seed=seed)
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
         self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot) for i in range(n)]

@@ -25,10 +25,13 @@ def pytest_sessionstart(session) -> None:
     from triswarm.protocol.controller import FormationController
     from triswarm.sitl.physics import Plant
 
-    plant = Plant(TABLE_1, 1)
-    plant.reset(np.zeros((1, 3)))
-    plant.advance(1)
-    plant.observe()
+    from triswarm.protocol.wind import Wind
+
+    for wind in (None, Wind(turbulence_sigma_w_m_s=1.0)):  # the plant in no air and in wind: two compilations
+        plant = Plant(TABLE_1, 1, wind=wind)
+        plant.reset(np.zeros((1, 3)))
+        plant.advance(1)
+        plant.observe()
     FormationController.warm_up(plan_from_dict(tomllib.loads(PAPER_PLAN_FILE.read_text())).design, 200.0)
 
 

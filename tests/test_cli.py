@@ -71,6 +71,18 @@ def test_infeasible_formation_in_a_scenario_file(tmp_path):
     assert "fails the feasibility condition (76): drone 3 position rows 10-12" in line
 
 
+def test_wind_flags_and_wind_tables_bad_input(tmp_path):
+    for cmd in (("sim", "--duration", "2"), ("sitl", "up", "-n", "1")):
+        assert "--wind-m-s must be a finite number (not negative), got -3.0" in bad(tmp_path, *cmd, "--wind-m-s", "-3")
+        assert "--turbulence must be none, light, moderate, severe" in bad(tmp_path, *cmd, "--turbulence", "gale")
+        assert "--gust must be SPEED_M_S,DURATION_S,START_S[,FROM_DEG] (three or four numbers), got '5,2'" in \
+            bad(tmp_path, *cmd, "--gust", "5,2")
+        assert "--gust: wind.gusts[1].duration_s must be positive, got -2.0" in \
+            bad(tmp_path, *cmd, "--gust", "5,2,10", "--gust", "5,-2,10")
+    path = paper_plan_variant(tmp_path, [("[leader]", "[wind]\nspeed_m_s = 4\nfrom = 90\n\n[leader]")])
+    assert "plan.toml: wind.from is not a known field" in bad(tmp_path, "sim", "--scenario", str(path))
+
+
 def test_unknown_scenario_and_unreadable_files(tmp_path):
     assert "not a plan file and not a built-in scenario" in bad(tmp_path, "sim", "--scenario", "no-such")
     assert "no such plan file" in bad(tmp_path, "sim", "--scenario", "missing.toml")

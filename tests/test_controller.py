@@ -1,4 +1,5 @@
-"""The per-drone controller: observer discretisation, delay predictor, one code path for N = 1 and N."""
+"""The per-drone controller: observer discretisation, delay predictor, the compiled tick against a
+numpy reference, one code path for N = 1 and N."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ from scipy.integrate import solve_ivp
 
 from triswarm.protocol import model
 from triswarm.protocol.agent import protocol_input
-from triswarm.protocol.controller import FormationController, _zoh_foh
+from triswarm.protocol.controller import FormationController, _zoh, _zoh_foh
 from triswarm.sitl.physics import Plant
 
 
@@ -57,33 +58,81 @@ def test_predictor_gives_the_state_one_servo_delay_ahead(paper_plan, rng):
     assert np.abs(err[:, 9:12]).max() < 1e-4  # position predicted within 0.1 mm
 
 
-def test_batch_and_single_agent_controllers_agree(paper_plan, rng):
-    """One code path: N agents at once give the same commands as N controllers with N = 1."""
+class NumpyController:
+    """One tick of the controller in plain numpy, from the design and protocol/controller.py's
+    docstring, not from its kernels: the observer (73) with the disturbance state, discretised
+    (ZOH on v, FOH on y), the prediction over the servo delay, the disturbance cancelled, half a
+    period on, (49) by linear solve (``RFL.control``), the thrust adaptation and the actuator
+    inverse of Remark 1."""
+
+    def __init__(self, design, n, rate_hz, adaptation_rate_1_s):
+        A, B, C, F = design.observer_model()
+        T = 1.0 / rate_hz
+        self.Phi, self.Gv, self.Gy0, self.Gy1 = _zoh_foh(A - design.c * F @ C, B, design.c * F, T)
+        Phi1, G1 = _zoh(A, B, T)
+        self.lead = int(round(design.rfl.airframe.servo_delay_s / T))
+        self.pred_Phi = np.linalg.matrix_power(Phi1, self.lead)
+        self.pred_G = [np.linalg.matrix_power(Phi1, self.lead - 1 - j) @ G1 for j in range(self.lead)]
+        self.half_Phi, self.half_G = _zoh(A, B, 0.5 * T)
+        self.E_inv = np.linalg.inv(design.B_r[0:6])
+        self.rfl, self.n, self.adapt_k = design.rfl, n, adaptation_rate_1_s * T
+
+    def reset(self, x):
+        self.z = np.hstack([self.rfl.phi_r(x), np.zeros((self.n, 6))])
+        self.y_prev, self.fresh, self.kappa = x[:, 6:12].copy(), True, np.ones(self.n)
+        self.v_pipe = [np.zeros((self.n, 6))] * self.lead
+        self.motor_pipe = [model.actuator_inverse(self.rfl.control(x, np.zeros((self.n, 6))))[0]] * self.lead
+        self.v_applied = np.zeros((self.n, 6))
+
+    def observe(self, y):
+        if not self.fresh:
+            self.z = self.z @ self.Phi.T + self.v_applied @ self.Gv.T + self.y_prev @ self.Gy0.T + y @ self.Gy1.T
+        self.fresh, self.y_prev = False, y.copy()
+        self.z_pred = self.z @ self.pred_Phi.T + sum(v @ G.T for v, G in zip(self.v_pipe, self.pred_G))
+        return self.z_pred[:, :12]
+
+    def actuate(self, v):
+        v = v - self.z_pred[:, 12:18] @ self.E_inv.T
+        zm = self.z_pred @ self.half_Phi.T + v @ self.half_G.T
+        u = self.rfl.control(self.rfl.phi_r_inverse(zm[:, :12]), v)
+        thrust = zm[:, :12] @ self.rfl.L[3:6].T + v @ self.rfl.M0[3:6].T + [0.0, 0.0, self.rfl.airframe.gravity_m_s2]
+        n2 = (thrust**2).sum(axis=1)
+        step = np.where(n2 > 1.0, self.adapt_k * (self.z[:, 12:15] * thrust).sum(axis=1) / n2, 0.0)
+        self.kappa = np.clip(self.kappa * (1.0 + step), 0.3, 3.0)
+        omega, alpha = model.actuator_inverse(u / self.kappa[:, None])
+        self.v_applied, self.v_pipe = self.v_pipe[0], self.v_pipe[1:] + [v]
+        omega_now, self.motor_pipe = self.motor_pipe[0], self.motor_pipe[1:] + [omega]
+        return omega_now, alpha
+
+
+def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng):
+    """Six agents at once (compiled kernels) against the numpy reference above, over ticks with noisy
+    measurements and arbitrary protocol inputs; and agent 1 alone gives agent 1's commands."""
     d = paper_plan.design
     n = 6
     x = np.zeros((n, 12))
     x[:, 9:12] = rng.uniform(-3, 3, (n, 3))
-    batch = FormationController(d, n)
-    singles = [FormationController(d, 1) for _ in range(n)]
-    batch.reset(x)
-    for i, s in enumerate(singles):
-        s.reset(x[i:i + 1])
+    x[:, 6:9] = rng.uniform(-0.3, 0.3, (n, 3))
+    batch, single, ref = FormationController(d, n), FormationController(d, 1), NumpyController(d, n, 200.0, 3.0)
+    for c in (batch, ref):
+        c.reset(x)
+    single.reset(x[:1])
     topo = paper_plan.schedule.topologies[1]
-    x0 = np.zeros(12)
-    for _ in range(20):
+    for _ in range(40):
         y = x[:, 6:12] + rng.normal(0, 0.01, (n, 6))
-        xi_b = batch.observe(y)
-        xi_s = np.vstack([s.observe(y[i:i + 1]) for i, s in enumerate(singles)])
-        assert np.allclose(xi_b, xi_s, atol=1e-9)
+        xi = batch.observe(y)
+        assert np.allclose(xi, ref.observe(y), rtol=1e-9, atol=1e-9)
+        assert np.allclose(single.observe(y[:1]), xi[:1], rtol=1e-12, atol=1e-12)
         gamma = rng.normal(0, 100, (n, 6))
-        v_b = protocol_input(d, xi_b, topo.adjacency @ xi_b, topo.in_degree, topo.pinning, x0, gamma)
-        v_s = np.vstack([protocol_input(d, xi_s[i:i + 1], (topo.adjacency[i] @ xi_s)[None, :], topo.in_degree[i:i + 1],
-                                        topo.pinning[i:i + 1], x0, gamma[i:i + 1]) for i in range(n)])
-        assert np.allclose(v_b, v_s)
-        a_b = batch.actuate(v_b)
-        a_s = [s.actuate(v_s[i:i + 1]) for i, s in enumerate(singles)]
-        assert np.allclose(a_b.omega_rad_s, np.vstack([a.omega_rad_s for a in a_s]))
-        assert np.allclose(a_b.alpha_rad, np.vstack([a.alpha_rad for a in a_s]))
+        v = protocol_input(d, xi, topo.adjacency @ xi, topo.in_degree, topo.pinning, np.zeros(12), gamma)
+        act = batch.actuate(v)
+        omega, alpha = ref.actuate(v)
+        assert np.allclose(act.omega_rad_s, omega, rtol=1e-9, atol=1e-6)
+        assert np.allclose(act.alpha_rad, alpha, rtol=1e-9, atol=1e-9)
+        assert np.allclose(batch.thrust_scale, ref.kappa, rtol=1e-12)
+        one = single.actuate(v[:1])
+        assert np.allclose(one.omega_rad_s, act.omega_rad_s[:1], rtol=1e-12) and np.allclose(one.alpha_rad, act.alpha_rad[:1])
+    assert np.abs(batch.thrust_scale - 1.0).max() > 1e-6  # (the adaptation did move)
 
 
 def test_missing_measurements_do_not_poison_the_estimate(paper_plan):

@@ -23,6 +23,80 @@ def test_hover_trim_matches_errata(airframe):
     x_level = x.copy()
     x_level[8] = 0.0
     assert np.abs(model.state_derivative(x_level, u, airframe)).max() < 1e-12
+    assert np.abs(model.state_derivative(x, u, airframe)).max() < 1e-12
+    # the same rotor speeds and angles through (29), not the solved rho
+    omega, alpha = model.hover_trim(airframe)
+    assert np.abs(model.state_derivative(x, model.actuator_map(omega, alpha), airframe)).max() < 1e-9
+
+
+def test_derivative_at_a_yawed_pitched_state_by_hand(airframe):
+    """Pitch 30 deg, yaw 90 deg, flying 2 m/s along body x, yawing at 0.5 rad/s, rotor 1 alone at
+    300 rad/s untilted. By hand: gravity in the body frame g (sin 30, 0, -cos 30); the Coriolis term
+    w x v = (0, 1, 0); rotor 1 pushes kf w^2 along body z from the arm l e_x, so its torque is
+    -l kf w^2 e_y, and its drag torque -kd w^2 e_z; (26) with roll 0 gives (r tan 30, 0, r / cos 30);
+    body x points north-tilted-down turned to the west: R e_x = (0, cos 30, -sin 30)."""
+    af = airframe
+    g, m, l, kf, kd = af.gravity_m_s2, af.mass_kg, af.arm_length_m, af.k_f_N_s2, af.k_d_N_m_s2
+    Ixx, Iyy, Izz, Iyz = af.Ixx_kg_m2, af.Iyy_kg_m2, af.Izz_kg_m2, af.Iyz_kg_m2
+    th, r, w2 = np.radians(30.0), 0.5, 300.0**2
+    x = np.zeros(12)
+    x[0], x[5], x[7], x[8], x[9:12] = 2.0, r, th, np.pi / 2, [1.0, 2.0, 3.0]
+    u = np.array([0.0, 0.0, 0.0, w2, 0.0, 0.0])
+    f = model.state_derivative(x, u, af)
+    assert f[0:3] == pytest.approx([g * 0.5, -1.0, -g * np.cos(th) + kf * w2 / m], abs=1e-12)
+    # (25): I w_dot = tau - w x I w with I w = (0, -Iyz r, Izz r), w x I w = (Iyz r^2, 0, 0)
+    tau = np.array([-Iyz * r**2, -l * kf * w2, -kd * w2])
+    det = Iyy * Izz - Iyz**2
+    assert f[3:6] == pytest.approx([tau[0] / Ixx, (Izz * tau[1] + Iyz * tau[2]) / det,
+                                    (Iyz * tau[1] + Iyy * tau[2]) / det], rel=1e-12)
+    assert f[6:9] == pytest.approx([r * np.tan(th), 0.0, r / np.cos(th)], abs=1e-12)
+    assert f[9:12] == pytest.approx([0.0, 2.0 * np.cos(th), -2.0 * np.sin(th)], abs=1e-12)
+
+
+def test_drag_by_hand(airframe):
+    """At rest in a 6 m/s wind from the north (towards -x), level and yawed 90 deg (body x to the
+    west, body y to the south): the drag 1/2 rho C_d A 36 N pushes along earth -x, body +y."""
+    x = np.zeros(12)
+    x[8] = np.pi / 2
+    u = model.hover_input(airframe)
+    rho_air = 1.2
+    f = model.state_derivative(x, u, airframe, wind_e_m_s=[-6.0, 0.0, 0.0], air_density_kg_m3=rho_air)
+    drag_N = 0.5 * rho_air * airframe.drag_coefficient * airframe.frontal_area_m2 * 36.0
+    assert f[0:3] == pytest.approx([0.0, drag_N / airframe.mass_kg, 0.0], abs=1e-12)
+    assert np.abs(f[3:12]).max() < 1e-12
+    # no wind: no drag at any velocity (the paper's model); still air: the drag of the motion
+    x[0:3] = [3.0, -1.0, 2.0]
+    still = model.state_derivative(x, u, airframe, wind_e_m_s=np.zeros(3), air_density_kg_m3=rho_air)
+    none = model.state_derivative(x, u, airframe)
+    v_e = model.rotation_body_to_earth(x[6:9]) @ x[0:3]
+    k = 0.5 * rho_air * airframe.drag_coefficient * airframe.frontal_area_m2
+    drag_b = model.rotation_body_to_earth(x[6:9]).T @ (-k * np.linalg.norm(v_e) * v_e)
+    assert still[0:3] - none[0:3] == pytest.approx(drag_b / airframe.mass_kg, abs=1e-12)
+    assert np.array_equal(still[3:], none[3:])
+
+
+def test_power_balance_along_the_flow(airframe, rng):
+    """The mechanical energy 1/2 m |v|^2 + 1/2 w.I w + m g z changes along the model's flow (its
+    directional derivative, by central differences) at the power of the rotors' force and torque
+    and of the drag: gravity, the Coriolis and the gyroscopic terms do no work."""
+    I = model.inertia_matrix(airframe)
+    m, g = airframe.mass_kg, airframe.gravity_m_s2
+
+    def energy(x):
+        return 0.5 * m * x[0:3] @ x[0:3] + 0.5 * x[3:6] @ I @ x[3:6] + m * g * x[11]
+
+    wind = np.array([4.0, -3.0, 1.0])
+    k = 0.5 * 1.225 * airframe.drag_coefficient * airframe.frontal_area_m2
+    for x in random_states(rng, 20):
+        u = rng.uniform(-2e5, 2e5, 6)
+        f = model.state_derivative(x, u, airframe, wind_e_m_s=wind)
+        h = 1e-6
+        dE = (energy(x + h * f) - energy(x - h * f)) / (2 * h)
+        v_e = model.rotation_body_to_earth(x[6:9]) @ x[0:3]
+        rel = v_e - wind
+        power = (airframe.k_f_N_s2 * model.H_f @ u) @ x[0:3] + (model.torque_matrix(airframe) @ u) @ x[3:6] \
+            - k * np.linalg.norm(rel) * rel @ v_e
+        assert dE == pytest.approx(power, rel=1e-6, abs=1e-6)
 
 
 def test_motor_limit_numbers(airframe):

@@ -1,5 +1,5 @@
 """The simulated plant: same physics as the paper's model, RK4 against closed forms, actuator delay
-and limits, ground contact, bad commands."""
+and limits, ground contact, bad commands. (Its wind: test_wind.py.)"""
 
 import numpy as np
 import pytest
@@ -10,15 +10,20 @@ from triswarm.sitl import physics as ph
 from .conftest import random_states
 
 
-def test_plant_derivative_equals_the_paper_model(airframe, rng):
-    P = ph.airframe_vector(airframe)
+@pytest.mark.parametrize("windy", [False, True])
+def test_plant_derivative_equals_the_paper_model(airframe, rng, windy):
+    """The plant (quaternion attitude) and the model (Euler angles) share (24), (25), (27) and the drag
+    (``protocol.dynamics``): what differs, the attitude, must agree too. (This also fails when numba's
+    cache of the plant holds an older protocol/dynamics.py: delete the *.nbi and *.nbc files.)"""
+    P = ph.airframe_vector(airframe, 1.225 if windy else 0.0)
     for x in random_states(rng, 30, max_pitch=1.4):
         u = rng.uniform(-1e5, 1e5, 6)
-        f = model.state_derivative(x, u, airframe)
+        wind = rng.uniform(-10, 10, (1, 3)) if windy else None
+        f = model.state_derivative(x, u, airframe, None if wind is None else wind[0])
         s = np.zeros(13)
         s[ph.POS], s[ph.VEL_B], s[ph.QUAT], s[ph.RATE_B] = x[9:12], x[0:3], ph.quaternion_from_euler(x[6:9]), x[3:6]
         out = np.zeros(13)
-        ph._derivative(s, u, P, out)
+        ph._derivative(s, u, P, wind, 0, out)
         assert np.allclose(out[ph.VEL_B], f[0:3], rtol=1e-12, atol=1e-9)
         assert np.allclose(out[ph.RATE_B], f[3:6], rtol=1e-12, atol=1e-9)
         assert np.allclose(out[ph.POS], f[9:12], rtol=1e-12, atol=1e-9)
@@ -100,12 +105,37 @@ def test_motor_and_servo_limits_are_applied(airframe):
 
 
 def test_non_finite_commands_are_not_applied(airframe):
-    plant = ph.Plant(airframe, 1, dt_s=1e-3)
-    plant.reset([[0, 0, 100.0]])
+    """A NaN or infinite command is a motor stopped or a servo centred, exactly."""
+    bad, zeroed = (ph.Plant(airframe, 1, dt_s=1e-3) for _ in range(2))
+    for plant in (bad, zeroed):
+        plant.reset([[0, 0, 100.0]])
+        plant.landed[:] = False
+    bad.command([[np.nan, np.inf, 300.0]], [[np.nan, 0.0, -np.inf]])
+    zeroed.command([[0.0, 0.0, 300.0]], [[0.0, 0.0, 0.0]])
+    bad.advance(100)
+    zeroed.advance(100)
+    assert np.all(np.isfinite(bad.state))
+    assert np.array_equal(bad.state, zeroed.state) and np.array_equal(bad.rho, zeroed.rho)
+    assert np.abs(bad.state[0, ph.RATE_B]).max() > 1.0  # (one rotor alone does turn the drone)
+
+
+def test_held_thrust_and_attitude_give_constant_acceleration(airframe):
+    """The hover input scaled by 1.1 at a tilted attitude: no torque, so the attitude holds, and
+    the body force 1.1 m g along body z gives the earth acceleration R (0, 0, 1.1 g) - (0, 0, g),
+    constant: p(t) = p0 + a t^2 / 2, which RK4 integrates exactly."""
+    omega, alpha = model.hover_trim(airframe)
+    eta = np.array([0.3, -0.2, 1.1])
+    plant = ph.Plant(airframe, 1, dt_s=1e-3, servo_delay_s=0.0)
+    plant.reset([[1.0, 2.0, 50.0]], euler_rad=[eta], servo_rad=alpha)
     plant.landed[:] = False
-    plant.command([[np.nan, np.inf, 300.0]], [[np.nan, 0.0, -np.inf]])
-    plant.advance(100)
-    assert np.all(np.isfinite(plant.state))
+    plant.command([omega * np.sqrt(1.1)], [alpha])
+    plant.advance(2000)
+    g = airframe.gravity_m_s2
+    a = model.rotation_body_to_earth(eta) @ [0.0, 0.0, 1.1 * g] - [0.0, 0.0, g]
+    obs = plant.observe()
+    assert obs.position_m[0] == pytest.approx([1.0, 2.0, 50.0] + 0.5 * a * 2.0**2, abs=1e-8)
+    assert obs.velocity_e_m_s[0] == pytest.approx(a * 2.0, abs=1e-8)
+    assert obs.euler_rad[0] == pytest.approx(eta, abs=1e-10)
 
 
 def test_ground_contact(airframe):

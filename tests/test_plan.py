@@ -56,6 +56,10 @@ def spec_with(paper_spec, path, value):
     (("topology", "switch_period_s"), 0.0, r"topology.switch_period_s must be positive"),
     (("entry", "blend_s"), -1.0, r"entry.blend_s must be positive"),
     (("controller", "rate_hz"), float("inf"), r"controller.rate_hz must be a finite number"),
+    (("wind", "speed_m_s"), -4.0, r"wind.speed_m_s must not be negative, got -4.0"),
+    (("wind", "turbulence"), "gale", r"wind.turbulence must be none, light, moderate, severe or sigma_w in m/s"),
+    (("wind", "gusts"), [{"speed_m_s": 3.0, "duration_s": 2.0}], r"wind.gusts\[0\].start_s is required"),
+    (("wind",), 5.0, r"\[wind\] must be a table"),
 ])
 def test_bad_plan_fields_are_refused_with_one_sentence(paper_spec, path, value, message):
     with pytest.raises(PlanError, match=message) as exc:

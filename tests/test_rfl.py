@@ -60,10 +60,33 @@ def test_law_at_hover_is_the_trim_and_beta_is_identity(rfl, airframe):
     assert np.allclose(rfl.beta(x), np.eye(6), atol=1e-12)
 
 
-def test_decoupling_matrix_is_invertible_below_90_degrees_pitch(airframe, rng):
-    x = random_states(rng, 500, max_pitch=np.pi / 2 - 1e-3)
-    det = np.linalg.det(decoupling_matrix(x, airframe))
-    assert np.all(np.abs(det) > 0) and np.all(np.isfinite(det))
+def test_decoupling_matrix_condition_is_bounded_below_90_degrees_pitch_and_grows_towards_it(airframe):
+    """M(x) (57) = blockdiag(Psi(eta), R(eta)) G, G the constant input matrix. W = Psi^-1 has
+    W^T W = [[1, 0, -s], [0, 1, 0], [-s, 0, 1]] (s = sin theta), singular values 1 and sqrt(1 +- s), so
+    cond(Psi) = sqrt((1 + |s|) / (1 - |s|)) whatever the roll and yaw, and
+        cond(G) / cond(Psi) <= cond(M) <= cond(G) cond(Psi):
+    bounded for |theta| < pi/2 (below 1200 up to the controller's 1.4 rad), cond(G) at level, and
+    growing like 1/cos(theta) towards +-pi/2, where M is singular."""
+    cond_G = np.linalg.cond(model.input_matrix(airframe))
+    angles = np.linspace(-np.pi, np.pi, 13)
+
+    def conds(theta):
+        x = np.zeros((angles.size, angles.size, 12))
+        x[..., 6], x[..., 8] = np.meshgrid(angles, angles)
+        x[..., 7] = theta
+        return np.linalg.cond(decoupling_matrix(x.reshape(-1, 12), airframe))
+
+    for theta in np.linspace(-1.4, 1.4, 29):
+        c = conds(theta)
+        s = abs(np.sin(theta))
+        cond_psi = np.sqrt((1 + s) / (1 - s))
+        assert np.all(c <= cond_G * cond_psi * (1 + 1e-9)) and np.all(c >= cond_G / cond_psi * (1 - 1e-9))
+        assert c.max() < 1200.0
+    assert conds(0.0) == pytest.approx(cond_G, rel=1e-9)
+    for eps in (1e-2, 1e-4, 1e-6):  # cond(Psi) ~ 2 / eps at theta = +-(pi/2 - eps)
+        for theta in (np.pi / 2 - eps, -np.pi / 2 + eps):
+            c = conds(theta)
+            assert c.min() > 10.0 / eps and c.max() < 2.0 * cond_G / eps
 
 
 def test_phi_r_inverse_and_solve_free_law(rfl, rng):

@@ -1,0 +1,38 @@
+"""What the formation control holds in wind, in-process: the hexagon of the case study held still
+(examples/still-hexagon.toml), so that only the wind moves air past the drones (docs/wind.md has
+the whole table, tests/bench/bench_wind.py makes it)."""
+
+from triswarm.gcs.scenarios import load_plan
+from triswarm.protocol import metrics
+from triswarm.protocol.wind import TURBULENCE_SIGMA_W_M_S, Wind
+from triswarm.sitl.simulation import SimConfig, simulate
+
+from .conftest import ROOT
+
+STILL_HEXAGON = str(ROOT / "examples" / "still-hexagon.toml")
+
+
+def fly(wind: Wind, seed: int = 0):
+    plan = load_plan(STILL_HEXAGON)
+    result = simulate(plan, SimConfig(duration_s=plan.duration_s, wind=wind, seed=seed))
+    pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
+    return result, metrics.assess(result.t_s, pos_err, att_err, window_start_s=plan.settled_from_s,
+                                  position_bound_m=0.25, attitude_bound_rad=0.05)
+
+
+def test_an_8_m_s_westerly_with_moderate_turbulence_is_held_within_the_wide_bounds():
+    """Measured over seeds 0-5: worst 0.097-0.166 m and 0.022-0.039 rad over the settled window (the
+    paper's 0.10 m / 0.02 rad break from 3.5 m/s of wind with this turbulence). Held here to 0.25 m
+    and 0.05 rad: 1.5 and 1.3 times the worst measured."""
+    wind = Wind(speed_m_s=8.0, from_deg=270.0, turbulence_sigma_w_m_s=TURBULENCE_SIGMA_W_M_S["moderate"])
+    result, perf = fly(wind)
+    assert result.diverged_at_s is None
+    assert perf.within_bounds, perf
+    assert perf.worst_position_m > 0.05  # (the turbulence did move the drones)
+
+
+def test_a_wind_far_past_the_measured_limit_breaks_the_formation():
+    """The steady wind is rejected to 1e-5 m up to 20 m/s and diverges from 20.5 m/s (a rotor must
+    tilt past 90 deg); at 30 m/s the formation is lost."""
+    result, perf = fly(Wind(speed_m_s=30.0, from_deg=270.0))
+    assert result.diverged_at_s is not None or not perf.within_bounds
