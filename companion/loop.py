@@ -29,7 +29,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from triswarm.protocol.agent import no_leader, pinned_input, protocol_input
+from triswarm.protocol.agent import no_leader, pinned_input, protocol_rows
 from triswarm.protocol.codec import AgentStatus
 from triswarm.protocol.mavlink import CustomMode
 
@@ -356,7 +356,7 @@ class ControlLoop:
             d = group[0].agent.design
             try:
                 i = [t.agent.id - 1 for t in group]
-                v = protocol_input(d, np.array([t.xi for t in group]), np.array([t.nsum for t in group]),
+                v = protocol_rows(d, np.array([t.xi for t in group]), np.array([t.nsum for t in group]),
                                    np.array([t.weight for t in group]),
                                    np.array([t.topo.pinning[k] for t, k in zip(group, i)]),
                                    np.array([t.x0 for t in group]), np.array([t.gamma for t in group]))

@@ -53,16 +53,22 @@ def consensus_error(xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.nda
 def protocol_input(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray,
                    pinning: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
     """(72): v (N, 6) for agents with estimates-minus-offsets xi (N, 12): c K times
-    ``consensus_error``, plus gamma. (Compiled row by row: an agent's v is the same bits whether
-    it is computed alone or with others.)"""
-    xi = np.ascontiguousarray(xi, dtype=float)
-    n = xi.shape[0]
-    out = np.empty((n, d.K.shape[0]))
-    kernels.protocol_rows(d.cK, xi, np.ascontiguousarray(np.broadcast_to(neighbour_sum, xi.shape), dtype=float),
-                          np.ascontiguousarray(np.broadcast_to(in_degree, (n,)), dtype=float),
-                          np.ascontiguousarray(np.broadcast_to(pinning, (n,)), dtype=float),
-                          np.ascontiguousarray(np.broadcast_to(x0, xi.shape), dtype=float),
-                          np.ascontiguousarray(np.broadcast_to(gamma, (n, d.K.shape[0])), dtype=float), out)
+    ``consensus_error``, plus gamma. The other arguments broadcast to N rows (``protocol_rows``)."""
+    xi = np.asarray(xi, dtype=float)
+    n, m = xi.shape[0], d.K.shape[0]
+    return protocol_rows(d, xi, np.broadcast_to(neighbour_sum, xi.shape), np.broadcast_to(in_degree, (n,)),
+                         np.broadcast_to(pinning, (n,)), np.broadcast_to(x0, xi.shape), np.broadcast_to(gamma, (n, m)))
+
+
+def protocol_rows(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degree: np.ndarray,
+                  pinning: np.ndarray, x0: np.ndarray, gamma: np.ndarray) -> np.ndarray:
+    """(72) with every argument given per row: xi, neighbour_sum, x0 (N, 12), in_degree and pinning
+    (N,), gamma (N, 6). Compiled row by row: an agent's v is the same bits whether it is computed
+    alone or with others."""
+    c = np.ascontiguousarray
+    out = np.empty((xi.shape[0], d.K.shape[0]))
+    kernels.protocol_rows(d.cK, c(xi, dtype=float), c(neighbour_sum, dtype=float), c(in_degree, dtype=float),
+                          c(pinning, dtype=float), c(x0, dtype=float), c(gamma, dtype=float), out)
     return out
 
 

@@ -194,25 +194,13 @@ class FormationController:
         v_out = np.empty((rows.size, 6))
         omega = np.empty((rows.size, 3))
         alpha = np.empty((rows.size, 3))
+        omega_now = np.empty((rows.size, 3))
         r = self.rfl
         kernels.actuate(rows, self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, MAX_PITCH_RAD,
-                        self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], v_out, omega, alpha)
-        return Actuation(self._push(rows, v_out, omega), alpha)
-
-    def _push(self, rows: np.ndarray, v: np.ndarray, omega: np.ndarray | None) -> np.ndarray | None:
-        """Commit v (and its rotor speeds) of ``rows`` to the pipe; return the rotor speeds to send now."""
-        if not self.lead_ticks:
-            self._v_applied[rows] = v
-            return omega
-        self._v_applied[rows] = self._v_pipe[0, rows]
-        self._v_pipe[:-1, rows] = self._v_pipe[1:, rows]
-        self._v_pipe[-1, rows] = v
-        omega_now = self._motor_pipe[0, rows]
-        self._motor_pipe[:-1, rows] = self._motor_pipe[1:, rows]
-        if omega is not None:
-            self._motor_pipe[-1, rows] = omega
-        return omega_now
+                        self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], self._v_pipe,
+                        self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
+        return Actuation(omega_now, alpha)
 
     def hold_tick(self, y: np.ndarray, rows=None) -> None:
         """A control period in which no new command went out (the loop fell behind): take the
@@ -220,4 +208,5 @@ class FormationController:
         rows = self._rows(rows)
         self.observe(y, rows)
         last_v = self._v_pipe[-1, rows] if self.lead_ticks else self._v_applied[rows]
-        self._push(rows, last_v.copy(), None)
+        kernels.push(rows, last_v, last_v[:, :3], True, self._v_pipe, self._motor_pipe, self._v_applied,
+                     np.empty((rows.size, 3)))

@@ -111,13 +111,38 @@ def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, p
 
 
 @numba.njit(cache=True)
+def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
+    """Commit each row's v (and its rotor speeds, unless ``keep_motor``: the actuators kept the
+    last ones) to the pipes of depth D = v_pipe.shape[0], the servo delay in ticks: the v leaving
+    the pipe is the one the plant now applies (``v_applied``), the rotor speeds leaving it are the
+    ones to send now (``omega_now``; with no delay, ``omega`` itself)."""
+    D = v_pipe.shape[0]
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        if D == 0:
+            v_applied[i, :] = v[k, :]
+            if not keep_motor:
+                omega_now[k, :] = omega[k, :]
+            continue
+        v_applied[i, :] = v_pipe[0, i, :]
+        omega_now[k, :] = motor_pipe[0, i, :]
+        for d in range(D - 1):
+            v_pipe[d, i, :] = v_pipe[d + 1, i, :]
+            motor_pipe[d, i, :] = motor_pipe[d + 1, i, :]
+        v_pipe[D - 1, i, :] = v[k, :]
+        if not keep_motor:
+            motor_pipe[D - 1, i, :] = omega[k, :]
+
+
+@numba.njit(cache=True)
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
-            kappa, adapt_k, k_lo, k_hi, v_out, omega, alpha):
+            kappa, adapt_k, k_lo, k_hi, v_pipe, motor_pipe, v_applied, v_out, omega, alpha, omega_now):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
-    predict half a period on, RFL, adapt and apply the thrust scale kappa, actuator inverse.
-    Writes v_out (the v committed), omega, alpha (indexed like v_in); updates kappa in place. z is
-    the observer state: with adaptation (adapt_k > 0, which needs a disturbance estimate) columns
-    12-14 are the translational disturbance."""
+    predict half a period on, RFL, adapt and apply the thrust scale kappa, actuator inverse, and
+    commit the result to the pipes (``push``). Writes v_out (the v committed), omega (the rotor
+    speeds computed), alpha and omega_now (the commands to send now), indexed like v_in; updates
+    kappa in place. z is the observer state: with adaptation (adapt_k > 0, which needs a
+    disturbance estimate) columns 12-14 are the translational disturbance."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)
     u = np.empty(6)
@@ -141,6 +166,7 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
             s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
             omega[k, j] = math.sqrt(math.hypot(s, c))
             alpha[k, j] = math.atan2(s, c)
+    push(rows, v_out, omega, False, v_pipe, motor_pipe, v_applied, omega_now)
 
 
 @numba.njit(cache=True)
