@@ -116,6 +116,8 @@ class FlightController:
         """Set when the swarm must (re)start its own controller for this vehicle."""
         self.actuators_changed = False
         """Set when an actuator command arrived that the plant has not been given yet."""
+        self.on_command = lambda: None
+        """Called when an actuator command arrived (the swarm learns which vehicles to command)."""
         self.airframe_changed = False
         self.rates_changed = False
         """Set when a stream rate changed: the server reschedules this vehicle's streams."""
@@ -149,6 +151,8 @@ class FlightController:
         if not spec.lo <= value <= spec.hi:
             return f"{name} must be within [{spec.lo:g}, {spec.hi:g}], got {value:g}"
         old = self.params[name]
+        if float(value) == old:
+            return None  # (the same value again: nothing changes, nothing to redo)
         self.params[name] = float(value)
         self.params_version += 1
         if name in AIRFRAME_PARAMS:
@@ -317,6 +321,7 @@ class FlightController:
         self.ext_omega[:] = dec.omega_rad_s
         self.ext_alpha[:] = dec.alpha_rad
         self.actuators_changed = True
+        self.on_command()
         self.last_command_s = now_s
         self.counters["actuator_commands"] += 1
         return []

@@ -96,6 +96,7 @@ class SitlServer:
         self.wall_elapsed = 0.0
         self.exceptions = 0
         self._lockstep_running = False
+        self._advance_pending = False
         self._wall_start_mono = time.monotonic()
         self._report = (self._wall_start_mono, 0.0)  # lockstep: (wall, simulated time) of the last RTF report
         self._join_wall_s = 0.0  # lockstep: wall time until every companion answered [s]
@@ -336,9 +337,17 @@ class SitlServer:
         finally:
             self.wall_elapsed = loop.time() - self.wall_start
 
-    def _step(self) -> None:
-        """One physics step, the telemetry it makes due, and what the autopilots have to say."""
-        self.swarm.step()
+    def _step(self, to_next_event: bool = False) -> None:
+        """One physics step (or, with ``to_next_event``, as many as there are to the next step at
+        which a control period starts or telemetry is due: nothing can happen in between in
+        lockstep), the telemetry it makes due, and what the autopilots have to say."""
+        n = 1
+        if to_next_event:
+            step = self.swarm.steps
+            n = min([self.swarm.steps_to_control()] + [p - step % p for p in self._groups])
+            if math.isfinite(self.end_s):
+                n = max(1, min(n, int(math.ceil((self.end_s - self.swarm.time_s) / self.swarm.dt_s - 1e-9))))
+        self.swarm.step(n)
         self._send_due()
         for i, fc in enumerate(self.swarm.fcs):
             if fc.outbox:
@@ -405,15 +414,21 @@ class SitlServer:
         finally:
             self._lockstep_running = False
 
-    def _advance(self) -> None:
+    def _advance(self, resumed: bool = False) -> None:
         """Lockstep: step while nothing is awaited (and the run is not over); a long run of steps
-        with nobody to wait for (every companion dropped) yields to the loop now and then."""
+        with nobody to wait for (every companion dropped) yields to the loop now and then, and
+        goes on from there (one such run at a time)."""
+        if resumed:
+            self._advance_pending = False
+        elif self._advance_pending:
+            return  # (a run of steps goes on at the loop's next turn)
         ls = self.lockstep
         for _ in range(MAX_BURST_STEPS):
             if ls.blocked or self.swarm.time_s >= self.end_s or not self._lockstep_running:
                 return
-            self._step()
-        asyncio.get_running_loop().call_soon(self._advance)
+            self._step(to_next_event=True)
+        self._advance_pending = True
+        asyncio.get_running_loop().call_soon(self._advance, True)
 
     def stats(self) -> dict:
         sim = self.swarm.time_s

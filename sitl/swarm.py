@@ -8,6 +8,7 @@ SITL flies its failsafe with the same code the companions fly formations with.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 
@@ -31,6 +32,7 @@ from .physics import QUAT, Plant, quaternion_from_euler
 from .telemetry import Snapshot
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
+BATTERY_PERIOD_S = 0.1  # the batteries drain in steps of this much simulated time (the power sampled then)
 
 
 def ground_grid(n: int, spacing_m: float = 2.5, first_id: int = 1) -> np.ndarray:
@@ -77,10 +79,16 @@ class SitlSwarm:
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
         self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot) for i in range(n)]
+        self._commanded: set[int] = set()
+        """The vehicles whose flight controllers took an actuator command since the last step."""
+        for i, fc in enumerate(self.fcs):
+            fc.on_command = functools.partial(self._commanded.add, i)
         self.seed = seed
         self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
+        self._battery_every = max(1, int(round(BATTERY_PERIOD_S / self.control_dt_s)))
+        self._control_ticks = 0
         self._noise: tuple = (-1, None)  # (the parameters' version, each vehicle's noise sigmas (N, 4))
         self.omega_cmd = np.zeros((n, 3))
         self.alpha_cmd = np.zeros((n, 3))
@@ -155,22 +163,29 @@ class SitlSwarm:
 
     # -- time -------------------------------------------------------------------------------
 
-    def step(self) -> None:
-        """One physics step; the flight controllers run every control period."""
+    def step(self, n: int = 1) -> None:
+        """``n`` physics steps with the commands held (none of them past the next control period's
+        start); the flight controllers run at every control period's start. The actuator commands
+        taken since the last step (``commanded``) apply from this one."""
         changed = False
         if self.steps % self.control_every == 0:
             self._control_tick()
             changed = True
-        for i, fc in enumerate(self.fcs):
-            if fc.actuators_changed or changed:
-                fc.actuators_changed = False
-                if fc.armed and fc.mode == CustomMode.EXTERNAL:
-                    self.omega_cmd[i] = fc.ext_omega
-                    self.alpha_cmd[i] = fc.ext_alpha
-                changed = True
+        for i in range(self.n) if changed else self._commanded:
+            fc = self.fcs[i]
+            fc.actuators_changed = False
+            if fc.armed and fc.mode == CustomMode.EXTERNAL:
+                self.omega_cmd[i] = fc.ext_omega
+                self.alpha_cmd[i] = fc.ext_alpha
+            changed = True
+        self._commanded.clear()
         if changed:
             self.plant.command(self.omega_cmd, self.alpha_cmd)
-        self.plant.advance(1)
+        self.plant.advance(n)
+
+    def steps_to_control(self) -> int:
+        """Physics steps from now to the next control period's start (at least 1)."""
+        return self.control_every - self.steps % self.control_every
 
     def _control_tick(self) -> None:
         now = self.time_s
@@ -189,7 +204,9 @@ class SitlSwarm:
                 self.inner_ref[i] = None
             elif fc.mode in INTERNAL_MODES:
                 internal.append(i)
-        drain_batteries(self.fcs, rows.rho, self.control_dt_s)
+        self._control_ticks += 1
+        if self._control_ticks % self._battery_every == 0:
+            drain_batteries(self.fcs, rows.rho, self._battery_every * self.control_dt_s)
         if internal:
             self._fly_internal(np.array(internal), now)
 
