@@ -175,6 +175,52 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
     return hist_pos
 
 
+SENSOR_COLUMNS = {"position_m": slice(0, 3), "velocity_e_m_s": slice(3, 6), "velocity_b_m_s": slice(6, 9),
+                  "euler_rad": slice(9, 12), "quaternion": slice(12, 16), "rate_b_rad_s": slice(16, 19),
+                  "specific_force_b": slice(19, 22)}
+"""Where each quantity of ``Plant.sensors`` is, paper frames."""
+
+
+@numba.njit(cache=True)
+def _sensors(state, rho, params, landed, wind_now, out):
+    """What ideal sensors read on every drone: out (N, 22), columns as ``SENSOR_COLUMNS``. The
+    specific force is what an accelerometer feels: thrust, drag and, on the ground, the ground's
+    push against gravity (body frame)."""
+    for i in range(state.shape[0]):
+        s, P = state[i], params[i]
+        qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+        n2 = qw * qw + qx * qx + qy * qy + qz * qz
+        k = 2.0 / n2
+        R = (1.0 - k * (qy * qy + qz * qz), k * (qx * qy - qz * qw), k * (qx * qz + qy * qw),
+             k * (qx * qy + qz * qw), 1.0 - k * (qx * qx + qz * qz), k * (qy * qz - qx * qw),
+             k * (qx * qz - qy * qw), k * (qy * qz + qx * qw), 1.0 - k * (qx * qx + qy * qy))
+        u, v, w = s[3], s[4], s[5]
+        ve = (R[0] * u + R[1] * v + R[2] * w, R[3] * u + R[4] * v + R[5] * w, R[6] * u + R[7] * v + R[8] * w)
+        for c in range(3):
+            out[i, c] = s[c]
+            out[i, 3 + c] = ve[c]
+            out[i, 6 + c] = s[3 + c]
+            out[i, 16 + c] = s[10 + c]
+        out[i, 9] = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+        out[i, 10] = math.asin(min(max(2.0 * (qw * qy - qz * qx), -1.0), 1.0))
+        out[i, 11] = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        out[i, 12], out[i, 13], out[i, 14], out[i, 15] = qw, qx, qy, qz
+        f = propulsive_force(rho[i])
+        kf_m = P[KF] / P[MASS]
+        sf = [kf_m * f[0], kf_m * f[1], kf_m * f[2]]
+        if wind_now is not None:
+            a = drag(ve, R, P, (wind_now[i, 0], wind_now[i, 1], wind_now[i, 2]))
+            for c in range(3):
+                sf[c] += a[c]
+        if landed[i]:
+            g = P[GRAVITY]
+            sf[0] += g * R[6]
+            sf[1] += g * R[7]
+            sf[2] += g * R[8]
+        for c in range(3):
+            out[i, 19 + c] = sf[c]
+
+
 @numba.njit(cache=True)
 def _output(state, y):
     """y = (roll, pitch, yaw, position) per drone, (N, 6): ``euler_from_quaternion`` and the
@@ -264,6 +310,10 @@ class _Air:
         if wind is not None:
             self.wind_now[:] = wind.steady_e_m_s
             self._fixed = (wind.steady_e_m_s, wind.gust_table(), self.turb_x, Phi, L, C)
+
+    def sensor_wind(self) -> np.ndarray | None:
+        """The wind each drone felt during the last step (N, 3) [m/s], or None in no air."""
+        return None if self.wind is None else self.wind_now
 
     def kernel_args(self, step0: int, n_steps: int) -> tuple | None:
         """The kernel's ``air`` for n_steps from step0: None in no air."""
@@ -370,6 +420,12 @@ class Plant:
         y = np.empty((self.n, 6))
         _output(self.state, y)
         return y
+
+    def sensors(self) -> np.ndarray:
+        """What ideal sensors read on every drone now (N, 22), columns as ``SENSOR_COLUMNS``."""
+        out = np.empty((self.n, 22))
+        _sensors(self.state, self.rho, self.params, self.landed, self._air.sensor_wind(), out)
+        return out
 
     def observe(self) -> PlantState:
         s = self.state

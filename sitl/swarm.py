@@ -28,7 +28,7 @@ from triswarm.protocol.rfl import RFL
 from triswarm.protocol.wind import Wind
 
 from .fc import FlightController, drain_batteries
-from .physics import QUAT, Plant, quaternion_from_euler
+from .physics import SENSOR_COLUMNS, Plant, quaternion_from_euler
 from .telemetry import Snapshot
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
@@ -119,28 +119,23 @@ class SitlSwarm:
         """Every vehicle's estimate this step: the plant's state plus each vehicle's noise."""
         if self._rows_step == self.steps:
             return self._rows
-        obs = self.plant.observe()
+        ideal = self.plant.sensors()
+        col = {name: ideal[:, c] for name, c in SENSOR_COLUMNS.items()}
         version = sum(fc.params_version for fc in self.fcs)
         if self._noise[0] != version:
             self._noise = (version, np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
                                                fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs]))
         sig = self._noise[1]
-        pos, vel_e, vel_b = obs.position_m, obs.velocity_e_m_s, obs.velocity_b_m_s
-        eta, rate = obs.euler_rad, obs.rate_b_rad_s
         if np.any(sig > 0):  # (drawn per step from the seed: the same whenever a snapshot is taken)
             noise = np.random.default_rng((self.seed, self.steps)).standard_normal((self.n, 4, 3)) * sig[:, :, None]
-            pos, vel_e, eta, rate = pos + noise[:, 0], vel_e + noise[:, 1], eta + noise[:, 2], rate + noise[:, 3]
-            vel_b = vel_b + noise[:, 1]
-        quat = quaternion_from_euler(eta) if np.any(sig[:, 2] > 0) else self.plant.state[:, QUAT].copy()
-        rho = self.plant.rho.copy()
-        P = self.plant.params  # per vehicle, in physics.airframe_vector's order
-        kf_m = P[:, 7] / P[:, 0]
-        force_b = kf_m[:, None] * (rho @ model.H_f.T)
-        # on the ground the accelerometer also feels the normal force
-        g = P[:, 1]
-        R = model.rotation_body_to_earth(obs.euler_rad)
-        normal = np.where(obs.landed[:, None], g[:, None] * R[:, 2, :], 0.0)
-        self._rows = Snapshot(pos, vel_e, vel_b, eta, quat, rate, force_b + normal, obs.landed, rho)
+            col["position_m"] = col["position_m"] + noise[:, 0]
+            col["velocity_e_m_s"] = col["velocity_e_m_s"] + noise[:, 1]
+            col["velocity_b_m_s"] = col["velocity_b_m_s"] + noise[:, 1]
+            col["euler_rad"] = col["euler_rad"] + noise[:, 2]
+            col["rate_b_rad_s"] = col["rate_b_rad_s"] + noise[:, 3]
+            if np.any(sig[:, 2] > 0):
+                col["quaternion"] = quaternion_from_euler(col["euler_rad"])
+        self._rows = Snapshot(landed=self.plant.landed.copy(), rho=self.plant.rho.copy(), **col)
         self._rows_step = self.steps
         self._snapshots = {}
         return self._rows
