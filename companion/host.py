@@ -96,7 +96,7 @@ class Host:
         """Fly every agent until ``stop``; if one cannot start or fails, stop them all and raise its
         error. Returns each agent's stats, in order."""
         self.loop = asyncio.get_running_loop()
-        self.loop_ctl = ControlLoop(self.loop)
+        self.loop_ctl = ControlLoop(self.loop, len(self.options))
         agents = [Agent(o, self, row) for row, o in enumerate(self.options)]
         # the kernels now, not when a plan starts (a first compile takes seconds)
         FormationController.warm_up(plan_from_dict(WARM_UP_PLAN).design, self.options[0].rate_hz)

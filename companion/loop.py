@@ -52,7 +52,9 @@ class Tick:
 
 
 class ControlLoop:
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+    """``agents``: how many agents the process flies."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, agents: int) -> None:
         self.loop = loop
         self._due: dict = {}          # agents with a new sample, in arrival order
         self._scheduled = False
@@ -60,6 +62,7 @@ class ControlLoop:
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = float("inf")
         self._buses: set = set()
+        self._agents = agents
 
     def watch(self, bus) -> None:
         """Estimates arriving on ``bus`` may complete waiting ticks."""
@@ -85,9 +88,14 @@ class ControlLoop:
         self._due[agent] = None
         if not self._scheduled:
             self._scheduled = True
-            self.loop.call_soon(self._run_due)
+            self.loop.call_soon(self._run_due, True)
 
-    def _run_due(self) -> None:
+    def _run_due(self, once_more: bool = False) -> None:
+        if once_more and len(self._due) < self._agents:
+            # (one more turn of the loop first: the other agents' samples of this instant, sent
+            # together, are on their way; acting on them together costs less)
+            self.loop.call_soon(self._run_due)
+            return
         self._scheduled = False
         agents = list(self._due)
         self._due.clear()
