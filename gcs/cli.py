@@ -212,6 +212,9 @@ def sitl_up(
                                                 "it is. The clock starts when every companion answers.")] = False,
     lockstep_timeout_s: Annotated[float, typer.Option(help="With --lockstep: a companion silent this long (wall "
                                                            "time) has died; its vehicle flies on without it [s].")] = 10.0,
+    max_rtf: Annotated[Optional[float], typer.Option(help="With --lockstep: never faster than this many simulated "
+                                                          "seconds per wall second (1: at most real time, to watch "
+                                                          "a run or drive it with tools on the wall clock).")] = None,
     wind_m_s: WindSpeed = None,
     wind_from_deg: WindFrom = None,
     turbulence: Turbulence = None,
@@ -233,6 +236,9 @@ def sitl_up(
         _finite("spacing-m", spacing_m, positive=True)
         _finite("duration", duration, positive=True)
         _finite("lockstep-timeout-s", lockstep_timeout_s, positive=True)
+        _finite("max-rtf", max_rtf, positive=True)
+        if max_rtf is not None and not lockstep:
+            raise UserError("--max-rtf goes with --lockstep (in real time the clock is the wall's)")
         if lockstep and speedup != 1.0:
             raise UserError("--speedup and --lockstep exclude each other: in lockstep the companions set the pace")
         if not 1 <= first_id <= 256 - n:
@@ -248,7 +254,7 @@ def sitl_up(
                 raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
-                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s) if lockstep else None,
+                           params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust))
 
         def ready(m: dict) -> None:

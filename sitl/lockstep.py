@@ -34,6 +34,9 @@ class LockstepOptions:
     """Wall time without an answer after which a companion counts as dead and leaves lockstep [s]."""
     reoffer_s: float = 0.5
     """Wall time after which an unanswered state is sent again [s]."""
+    max_rtf: float = float("inf")
+    """Never faster than this many simulated seconds per wall second (1: at most real time, for a
+    run watched or driven by tools on the wall clock)."""
 
 
 @dataclass

@@ -100,6 +100,7 @@ class SitlServer:
         self._wall_start_mono = time.monotonic()
         self._report = (self._wall_start_mono, 0.0)  # lockstep: (wall, simulated time) of the last RTF report
         self._join_wall_s = 0.0  # lockstep: wall time until every companion answered [s]
+        self._join_mono = 0.0  # lockstep: the monotonic clock then [s]
         self._join_sim_s = 0.0
 
     # -- sockets ----------------------------------------------------------------------------
@@ -197,7 +198,8 @@ class SitlServer:
             said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall)
             if said == "started":
                 self.say("lockstep: every vehicle's companion answers; the clock runs")
-                self._join_wall_s, self._join_sim_s = time.monotonic() - self._wall_start_mono, self.swarm.time_s
+                self._join_mono, self._join_sim_s = time.monotonic(), self.swarm.time_s
+                self._join_wall_s = self._join_mono - self._wall_start_mono
                 self._report = (time.monotonic(), self.swarm.time_s)
             elif said == "back":
                 self.say(f"lockstep: vehicle {fc.sysid}'s companion answers again; it is back in lockstep")
@@ -426,9 +428,23 @@ class SitlServer:
         for _ in range(MAX_BURST_STEPS):
             if ls.blocked or self.swarm.time_s >= self.end_s or not self._lockstep_running:
                 return
+            ahead_s = self._ahead_of_max_rtf()
+            if ahead_s > 0.0:  # (--max-rtf: wait for the wall clock)
+                self._advance_pending = True
+                asyncio.get_running_loop().call_later(ahead_s / ls.options.max_rtf, self._advance, True)
+                return
             self._step(to_next_event=True)
         self._advance_pending = True
         asyncio.get_running_loop().call_soon(self._advance, True)
+
+    def _ahead_of_max_rtf(self) -> float:
+        """Simulated seconds the clock is ahead of the wall times ``max_rtf`` (counted from the
+        moment every companion answered; 0 when it is not, or with no limit)."""
+        ls = self.lockstep
+        if not (ls.started and math.isfinite(ls.options.max_rtf)):
+            return 0.0
+        wall0, sim0 = self._join_mono, self._join_sim_s
+        return max(0.0, self.swarm.time_s - sim0 - (time.monotonic() - wall0) * ls.options.max_rtf)
 
     def stats(self) -> dict:
         sim = self.swarm.time_s

@@ -96,6 +96,10 @@ def main() -> None:
     cpu = {who: round(u.ru_utime + u.ru_stime, 1) for who, u in (("stack", resource.getrusage(resource.RUSAGE_CHILDREN)),
                                                                  ("relay_and_recorder", resource.getrusage(resource.RUSAGE_SELF)))}
     ok, worst = judge(plan, rec, start, a.from_s, a.until_s, position_bound_m=float("inf"), attitude_bound_rad=float("inf"))
+    from triswarm.protocol import metrics
+    t, pos, eta = rec.arrays(start, t_from=a.from_s, t_to=a.until_s)
+    pe, ae = metrics.formation_errors(plan, t, pos, eta)
+    series = {int(k): [(round(float(t[j]), 2), round(float(pe[j, k]), 3), round(float(ae[j, k].max()), 3)) for j in range(0, len(t)) if ae[j, k].max() > 0.02 or pe[j, k] > 0.05] for k in range(plan.n_agents)}
     lag_ms = along_track_lag_ms(plan, rec, start, a.from_s - 5.0, a.from_s)
     holds = {i: [line.split("companion ", 1)[1] for line in stack.log(f"companion-{i}").splitlines() if "hold at t_plan" in line]
              for i in range(1, N + 1)}
@@ -104,7 +108,7 @@ def main() -> None:
     # of a companion silent for 0.3 s)
     modes = {i: [(round(t - start, 2), mode) for t, mode, armed in rec.modes.get(i, []) if start + 1.0 < t < start + a.until_s]
              for i in range(1, N + 1)}
-    result = {"worst": worst, "alive": alive, "relay": dict(relay.counters), "times": times, "holds": holds, "modes": modes,
+    result = {"series": series, "worst": worst, "alive": alive, "relay": dict(relay.counters), "times": times, "holds": holds, "modes": modes,
               "late": [line for i in range(1, N + 1) for line in stack.log(f"companion-{i}").splitlines() if "late for the start" in line],
               "cpu_s": cpu, "flown_s": round(flown_s, 1), "along_track_lag_ms": lag_ms, "scheduling": scheduling,
               "clock_behind_wall_s": _spread([b for t, b in lag if t > 0.0]),

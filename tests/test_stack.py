@@ -143,9 +143,13 @@ def test_paper_case_study_whole_stack_then_a_companion_killed_and_restarted(tmp_
     # triangles (65-70 s): agent 3 has no path to the leader: it holds and says so; the rest fly on
     ok, worst = judge(plan, rec, start, KILL_AT + 1, RESTART_AT, drones=[1, 4, 5, 6])
     assert ok, f"{KILL_AT:.0f}-{RESTART_AT:.0f} s, agents 1, 4, 5, 6: {worst}"
+    # (and again when triangles comes back, at 80 s, if agent 2 is not flying by then: its restart
+    # takes seconds of wall time, and the clock runs on meanwhile, faster on a faster machine)
+    triangles = [k * 15.0 + 5.0 for k in range(1, 20) if KILL_AT < k * 15.0 + 5.0 < back + 0.5]
     holding = [(since - start, reason) for since, status, reason in status_changes(bus.statuses, 3) if status == "HOLDING"]
-    assert holding and all(KILL_AT + 4.5 < t < RESTART_AT + 0.5 for t, _ in holding), holding
-    assert "no path to the leader in triangles" in holding[0][1]
+    assert holding and abs(holding[0][0] - (KILL_AT + 5.0)) < 0.5, holding
+    assert all(any(abs(t - s) < 0.5 for s in triangles) for t, _ in holding), (holding, back)
+    assert all("no path to the leader in triangles" in reason for _, reason in holding), holding
     assert any("holding" in text and KILL_AT + 4.5 < t < RESTART_AT + 0.5 for t, text in texts), texts
     # path back at 70 s (reverse-two-chain)
     assert any("in formation" in text and RESTART_AT - 0.5 < t < RESTART_AT + 1 for t, text in texts), texts

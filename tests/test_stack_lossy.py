@@ -83,6 +83,7 @@ def test_drop_20_percent_and_delay_20_ms(tmp_path):
     assert run.returncode == 0, run.stderr[-4000:]
     result = json.loads(out.read_text())
     loops = {i: c["loop"] for i, c in result["companions"].items()}
+    print("SERIES " + json.dumps(result.get("series")))
     print("MEASURED " + json.dumps({
         "iptables_packets": counts, "relay": result["relay"], "worst": result["worst"], "times": result["times"],
         "cpu_s": result["cpu_s"], "flown_s": result["flown_s"], "sitl": result["sitl"],

@@ -95,8 +95,20 @@ can be late; the companions arm 2 s before the start."""
 MIN_CUT_WALL_S = 4.0
 """The restore waits, beside plan time RESTORE_AT, for this much wall time after the cut: the
 monitor calls a drone lost after 2 s of silence and prints a table a second, so it shows the cut
-whatever the speed of the simulated clock. (Here the clock runs at most a little faster than the
+whatever the speed of the simulated clock. (The clock runs at most MAX_RTF times as fast as the
 wall: the wait does not delay the restore.)"""
+MAX_RTF = 1.0
+"""The simulated clock never runs faster than the wall here (``sitl up --max-rtf``): what happens on
+the wall clock (the routers reconnecting, the monitor's 2 s to call a drone lost, the restore's
+wall-time wait, statuses and liveliness, which are not lockstepped) then takes at most as many
+simulated seconds as wall seconds, and the timeline above holds however fast the machine is."""
+TICK_S = 1.0 / 100.0 + 1e-6
+"""A control period (RATE_HZ): a tick acts on the graph in force at the time its estimate refers
+to, one period ahead."""
+STATUS_SLACK_S = 0.1
+"""1-4 fly again once a path is back: 1 and 2 at once (pinned in two-chain), 3 and 4 when the
+others' FLYING status has reached them. A status travels on Zenoh outside lockstep (through the
+routers, on the wall clock): some ticks of simulated time, at most (MAX_RTF) that much wall time."""
 CUT_TOLERANCE_S = 0.5
 """5 and 6 hold, and the routers lose them, within this much plan time of the cut (measured once the
 rules are in: the clock then stands while 5 and 6 wait for the estimates the cut lost)."""
@@ -281,7 +293,8 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             # the six flight controllers: one simulator, one clock, on the bridge's address
             manifest_path = tmp_path / "manifest.json"
             spawn([], "sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", "6", "--lockstep",
-                               "--bind", net.bridge_address, "--base-port", "0", "--manifest", str(manifest_path),
+                               "--max-rtf", str(MAX_RTF), "--bind", net.bridge_address, "--base-port", "0",
+                               "--manifest", str(manifest_path),
                                "--stats", str(tmp_path / "stats" / "sitl.json")])
             wait(manifest_path.exists, "the SITL's manifest", 60.0)
             manifest = json.loads(manifest_path.read_text())
@@ -410,7 +423,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             # (a tick acts on the graph in force at the time its estimate refers to: a tick early)
             assert holds and HOLD_AT - 0.02 <= holds[0][0] < HOLD_AT + 0.05, (i, status[i])
             assert "no path to the leader in reverse-two-chain" in holds[0][1], (i, holds)
-            assert min(t_restore, TWO_CHAIN_AT) < back[i] <= TWO_CHAIN_AT + 0.01, (i, status[i], t_restore)
+            assert min(t_restore, TWO_CHAIN_AT) - TICK_S <= back[i] <= TWO_CHAIN_AT + STATUS_SLACK_S, (i, status[i], t_restore)
             if t_reconnected < TWO_CHAIN_AT - 0.5:  # reconnected in reverse-two-chain: they fly again then
                 assert back[i] < t_reconnected + 0.5, (i, back[i], t_reconnected)
             # braking: slower at the end of the hold than at its start (from 10 m/s)
