@@ -2,8 +2,9 @@
 
 The dialect is chosen here, once: everything in triswarm that speaks MAVLink imports ``mavlink``
 from this module, never through pymavlink's environment variables. It is triswarm's dialect
-(``protocol/dialect/triswarm.xml``: common.xml plus the plan and leader commands), generated with
-pymavlink's own generator; its messages are common.xml's, byte for byte.
+(``protocol/dialect/triswarm.xml``: common.xml plus the plan and leader commands), shipped generated
+(``protocol/dialect/triswarm_v20.py``, pymavlink's own generator's output); its messages are
+common.xml's, byte for byte.
 
 Custom modes (HEARTBEAT.custom_mode, with MAV_MODE_FLAG_CUSTOM_MODE_ENABLED in base_mode):
 
@@ -40,9 +41,7 @@ from pathlib import Path
 
 import numpy as np
 from . import frames
-from .dialect import load as _load_dialect
-
-mavlink = _load_dialect()  # the dialect, chosen once
+from .dialect import triswarm_v20 as mavlink  # the dialect, chosen once
 
 ACTUATOR_GROUP = 0
 COMP_AUTOPILOT = mavlink.MAV_COMP_ID_AUTOPILOT1
