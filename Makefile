@@ -1,5 +1,5 @@
 # triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks,
-# `make docs` regenerates the CLI reference docs/cli.md.
+# `make docs` regenerates the CLI reference docs/cli.md, `make dialect` the MAVLink dialect's module.
 # Every target creates (once) and uses the project's own virtual environment in .venv.
 
 PYTHON ?= python3
@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
-.PHONY: demo test bench docs venv clean lint netns-tools
+.PHONY: demo test bench docs dialect venv clean lint netns-tools
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
@@ -59,6 +59,11 @@ bench: $(STAMP)
 # docs/cli.md: the --help of every command, from the CLI itself
 docs: $(STAMP)
 	$(PY) tools/gen_cli_docs.py
+
+# protocol/dialect/triswarm_v20.py: the MAVLink dialect, from the XML files beside it, by pymavlink's generator
+# (after a change to them; tests/test_dialect.py says when it is due)
+dialect: $(STAMP)
+	$(PY) tools/gen_dialect.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -30,7 +30,7 @@ import numpy as np
 from triswarm.protocol import model
 from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.formation import RelativeTo
-from triswarm.protocol.mavlink import mavlink, read_signing_key
+from triswarm.protocol.mavlink import mavlink
 
 from .autopilot import Autopilot
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
@@ -38,7 +38,7 @@ from .ground_station import GroundStation, Params
 from .health import LoopHealth
 from .plan_server import PlanServer
 from .plans import Plans
-from .state import StateStore
+from .state import StateStore, read_signing_key
 
 log = logging.getLogger("triswarm.companion")
 

@@ -364,7 +364,7 @@ def _check_signing_key(c: Checks, path: Path | None) -> None:
     if path is None:
         c.info("signing key", "none configured: the ground-station link is not signed")
         return
-    from triswarm.protocol.mavlink import read_signing_key
+    from .state import read_signing_key
 
     try:
         read_signing_key(Path(path))

@@ -86,7 +86,8 @@ class GroundStation:
         self.link = MavLink("gcs", url, agent.id, COMP_ONBOARD)
         self.signing_key = signing_key
         if signing_key is not None:
-            setup_signing(self.link.codec, signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__, self.link.counters)
+            setup_signing(self.link.codec, signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__, self.link.counters,
+                          clock=time.time)
         self.router = Router(agent.id, COMP_ONBOARD)
         self._statustext_id = 0
         self._forwarded_at: dict[int, float] = {}

@@ -1,4 +1,5 @@
-"""What a companion keeps across a restart: its plan and where the mission is, written atomically."""
+"""What a companion keeps across a restart: its plan and where the mission is, written atomically;
+and the signing key file it reads (as the ground station does)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,19 @@ import json
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+
+
+def read_signing_key(path: Path) -> bytes:
+    """The signing key in the file ``path`` (32 bytes, or 64 hexadecimal digits: see
+    ``protocol.mavlink.signing_key``). ValueError (one sentence, naming the file) if it cannot be
+    read or is not a key."""
+    from triswarm.protocol.mavlink import signing_key
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the signing key ({exc.strerror})") from None
+    return signing_key(data, str(path))
 
 
 def write_json_atomically(path: Path, data: dict) -> None:

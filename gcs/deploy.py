@@ -263,7 +263,7 @@ def ensure_signing_key(path: Path, *, generate: bool, dry_run: bool, say: Callab
     """The signing key's file content; with ``generate``, a missing key is made (``secrets.token_hex(32)``,
     mode 0600). In a dry run nothing is written and None stands for the key to be made."""
     if path.exists():
-        from triswarm.protocol.mavlink import read_signing_key
+        from triswarm.companion.state import read_signing_key
 
         read_signing_key(path)   # ValueError (one sentence) for a bad key
         return path.read_bytes()

@@ -132,7 +132,8 @@ class GroundLink:
                                                            autoreconnect=True)
                 self.codecs[i] = new_codec(GCS_SYSID, GCS_COMPID)
                 if signing_key is not None:
-                    setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters)
+                    setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters,
+                                  clock=time.time)
         except Exception as exc:  # pymavlink raises what the socket or serial layer raises
             self.close()
             raise LinkError(f"cannot open the link to drone {i} at {url}: {exc}") from None

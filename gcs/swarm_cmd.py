@@ -16,7 +16,8 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, read_signing_key
+from triswarm.companion.state import read_signing_key
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, encode_plan
 
 from . import missions

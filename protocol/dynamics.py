@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from .airframe import Airframe
+from .jit import njit
 
 # Entries of the parameter vector (``airframe_vector``).
 MASS, GRAVITY, ARM, IXX, IYY, IZZ, IYZ, KF, KD, MAX_OMEGA, SERVO_LIMIT, DRAG = range(12)
@@ -43,7 +43,7 @@ def airframe_vector(af: Airframe, air_density_kg_m3: float = 0.0) -> np.ndarray:
                      af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad, drag])
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def propulsive_force(rho):
     """(3) over k_f: H_f rho, the body-frame thrust per unit k_f [rad^2/s^2], as (x, y, z)."""
     return (-_S3 * rho[1] + _S3 * rho[2],
@@ -51,7 +51,7 @@ def propulsive_force(rho):
             rho[3] + rho[4] + rho[5])
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def rigid_body(u, v, w, p, q, r, R, rho, P):
     """d/dt of the body velocity (24) [m/s^2], the body rates (25) [rad/s^2] and the position (27)
     [m/s], as one 9-tuple, for body velocity (u, v, w), body rates (p, q, r), the rotation
@@ -81,7 +81,7 @@ def rigid_body(u, v, w, p, q, r, R, rho, P):
             r00 * u + r01 * v + r02 * w, r10 * u + r11 * v + r12 * w, r20 * u + r21 * v + r22 * w)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def drag(vel_e, R, P, wind):
     """The drag's share of (24), body frame [m/s^2], as (x, y, z): F_e = -k |v_rel| v_rel over the
     mass, brought into the body frame by R^T, for the earth velocity vel_e (3-tuple, (27)), the
@@ -93,7 +93,7 @@ def drag(vel_e, R, P, wind):
             k * (r02 * ax + r12 * ay + r22 * az))
 
 
-@numba.njit(cache=True)
+@njit()
 def rigid_body_rows(vel_b, rate_b, R, rho, P, wind_e, out):
     """``rigid_body`` and ``drag`` for N rows: vel_b, rate_b, wind_e (N, 3), R (N, 3, 3), rho (N, 6);
     writes out (N, 9) = [v_b_dot, omega_dot, lambda_dot]."""

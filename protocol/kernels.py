@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from .jit import njit
 
-@numba.njit(cache=True)
+
+@njit()
 def _matvec_add(M, x, out, scale=1.0):
     for r in range(M.shape[0]):
         acc = 0.0
@@ -24,7 +25,7 @@ def _matvec_add(M, x, out, scale=1.0):
         out[r] += scale * acc
 
 
-@numba.njit(cache=True)
+@njit()
 def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
     """(49) in x_r coordinates for one row (see RFL.control_xr): writes u (6) and y_ddot (6)."""
     for k in range(6):
@@ -68,13 +69,13 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
     _matvec_add(G_inv, w, u)
 
 
-@numba.njit(cache=True)
+@njit()
 def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
     for i in range(xr.shape[0]):
         rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, max_pitch, u[i], yddot[i])
 
 
-@numba.njit(cache=True)
+@njit()
 def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred):
     """One observer step for each agent row in ``rows`` (FOH on y, ZOH on v), then the prediction
     over the pipe; y[k] is row rows[k]'s measurement. A row whose measurement is not finite runs
@@ -110,7 +111,7 @@ def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, p
             _matvec_add(pred_G[j], v_pipe[j, i], z_pred[i])
 
 
-@numba.njit(cache=True)
+@njit()
 def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
     """Commit each row's v (and its rotor speeds, unless ``keep_motor``: the actuators kept the
     last ones) to the pipes of depth D = v_pipe.shape[0], the servo delay in ticks: the v leaving
@@ -134,7 +135,7 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
             motor_pipe[D - 1, i, :] = omega[k, :]
 
 
-@numba.njit(cache=True)
+@njit()
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
             kappa, adapt_k, k_lo, k_hi, v_pipe, motor_pipe, v_applied, v_out, omega, alpha, omega_now):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
@@ -169,7 +170,7 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     push(rows, v_out, omega, False, v_pipe, motor_pipe, v_applied, omega_now)
 
 
-@numba.njit(cache=True)
+@njit()
 def gamma_rows(A_r, B_tilde, h, h_dot, out):
     """(78) for each row: out[i] = B_tilde (h_dot[i] - A_r h[i]). Written out (not BLAS) so that a
     row's result does not depend on how many rows are computed with it."""
@@ -188,7 +189,7 @@ def gamma_rows(A_r, B_tilde, h, h_dot, out):
             out[i, r] = acc
 
 
-@numba.njit(cache=True)
+@njit()
 def protocol_rows(cK, xi, neighbour_sum, in_degree, pinning, x0, gamma, out):
     """(72) for each row: out[i] = c K (sum_j a_ij xi_j - (d_i + g_i) xi_i + g_i x0_i) + gamma_i,
     with ``cK`` = c K. Written out, as ``gamma_rows``."""

@@ -2,8 +2,9 @@
 
 The dialect is chosen here, once: everything in triswarm that speaks MAVLink imports ``mavlink``
 from this module, never through pymavlink's environment variables. It is triswarm's dialect
-(``protocol/dialect/triswarm.xml``: common.xml plus the plan and leader commands), generated with
-pymavlink's own generator; its messages are common.xml's, byte for byte.
+(``protocol/dialect/triswarm.xml``: common.xml plus the plan and leader commands), shipped generated
+(``protocol/dialect/triswarm_v20.py``, pymavlink's own generator's output); its messages are
+common.xml's, byte for byte.
 
 Custom modes (HEARTBEAT.custom_mode, with MAV_MODE_FLAG_CUSTOM_MODE_ENABLED in base_mode):
 
@@ -21,8 +22,10 @@ Actuator mapping of SET_ACTUATOR_CONTROL_TARGET (group_mlx 0), normalised as MAV
 Values outside those ranges are clamped and counted; a message with a non-finite value in
 controls[0..5] is dropped and counted.
 
-MAVLink 2 signing (https://mavlink.io/en/guide/message_signing.html) of a link: ``read_signing_key``
-and ``setup_signing``, on pymavlink's own signing state (``MAVLink.signing``).
+MAVLink 2 signing (https://mavlink.io/en/guide/message_signing.html) of a link: ``signing_key``
+and ``setup_signing``, on pymavlink's own signing state (``MAVLink.signing``). Like all of
+``protocol/``, this module does no I/O: the key file is read, and the clock that timestamps signed
+frames is given, by the caller (the companion or the ground station).
 """
 
 from __future__ import annotations
@@ -32,17 +35,13 @@ import math
 import hashlib
 import hmac
 import struct
-import time
 from collections import Counter
 from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from . import frames
-from .dialect import load as _load_dialect
-
-mavlink = _load_dialect()  # the dialect, chosen once
+from .dialect import triswarm_v20 as mavlink  # the dialect, chosen once
 
 ACTUATOR_GROUP = 0
 COMP_AUTOPILOT = mavlink.MAV_COMP_ID_AUTOPILOT1
@@ -85,20 +84,18 @@ NEW_STREAM_LAG = 6_000_000  # a new stream may start at most a minute behind our
 SIGNATURE_REFUSED = "Invalid signature"  # pymavlink's reason (BAD_DATA) for a frame its signing refused
 
 
-def read_signing_key(path: Path) -> bytes:
-    """A signing key file: the 32 bytes of secret, either as they are (a 32-byte binary file) or
-    as 64 hexadecimal digits (a text file; surrounding white space is ignored). ValueError (one
-    sentence) for anything else, and for the all-zero key, which means "no signing" in MAVLink."""
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read the signing key ({exc.strerror})") from None
+def signing_key(data: bytes, source: str) -> bytes:
+    """The key in a signing key file's content ``data``: the 32 bytes of secret, either as they are
+    (a 32-byte binary file) or as 64 hexadecimal digits (a text file; surrounding white space is
+    ignored). ValueError (one sentence, naming ``source``, the file) for anything else, and for the
+    all-zero key, which means "no signing" in MAVLink. (Reading the file is the caller's:
+    ``companion.state.read_signing_key``.)"""
     key = data if len(data) == SIGNING_KEY_BYTES else _hex_key(data.strip())
     if key is None:
-        raise ValueError(f"{path}: not a signing key: expected {SIGNING_KEY_BYTES} bytes, or "
+        raise ValueError(f"{source}: not a signing key: expected {SIGNING_KEY_BYTES} bytes, or "
                          f"{2 * SIGNING_KEY_BYTES} hexadecimal digits (the file has {len(data)} bytes)")
     if not any(key):
-        raise ValueError(f"{path}: the all-zero signing key means no signing; make a random one")
+        raise ValueError(f"{source}: the all-zero signing key means no signing; make a random one")
     return key
 
 
@@ -129,17 +126,22 @@ class Signing(mavlink.MAVLinkSigning):
     (signed with another key, or altered), ``refused_replay`` (a good signature, but a timestamp not
     newer than the last of its stream (link id, system, component), or for a new stream, more than a
     minute behind our own).
+
+    ``clock``: the Unix time in seconds (``time.time`` in a companion or a ground station), which
+    our timestamps never fall behind.
     """
 
-    def __init__(self, allow_unsigned: Callable[[int], bool] | None, counters: MutableMapping[str, int]) -> None:
+    def __init__(self, allow_unsigned: Callable[[int], bool] | None, counters: MutableMapping[str, int], *,
+                 clock: Callable[[], float]) -> None:
         super().__init__()
+        self.clock = clock
         self.allow_unsigned = allow_unsigned
         self.counters = counters
         self._failed: str | None = None  # why the frame being decoded failed its check
 
     @property
     def timestamp(self) -> int:
-        return max(self._timestamp, signing_timestamp(time.time()))
+        return max(self._timestamp, signing_timestamp(self.clock()))
 
     @timestamp.setter
     def timestamp(self, value: int) -> None:
@@ -194,12 +196,13 @@ class Signing(mavlink.MAVLinkSigning):
 
 
 def setup_signing(codec: "mavlink.MAVLink", key: bytes, link_id: int, allow_unsigned: Callable[[int], bool] | None = None,
-                  counters: MutableMapping[str, int] | None = None) -> None:
+                  counters: MutableMapping[str, int] | None = None, *, clock: Callable[[], float]) -> None:
     """Sign every frame ``codec`` packs (as link ``link_id``) and check every frame it parses:
     frames refused become BAD_DATA with reason SIGNATURE_REFUSED, counted by reason (see Signing)
     in ``counters`` (a new Counter by default). ``allow_unsigned(msg_id)``: which unsigned frames
-    may pass (default: none)."""
-    signing = Signing(allow_unsigned, Counter() if counters is None else counters)
+    may pass (default: none). ``clock``: the Unix time in seconds, for the timestamps (the
+    caller's ``time.time``: this module reads no clock)."""
+    signing = Signing(allow_unsigned, Counter() if counters is None else counters, clock=clock)
     signing.secret_key, signing.link_id, signing.sign_outgoing = key, link_id, True
     signing.allow_unsigned_callback = signing.accept
     codec.signing = signing

@@ -29,11 +29,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import scipy.linalg
 
 from .airframe import ParameterError, finite_number
+from .jit import njit
 
 SEA_LEVEL_AIR_DENSITY_KG_M3 = 1.225
 """ISA sea-level air density."""
@@ -158,7 +158,7 @@ def turbulence_sigma_w(level: str | float, what: str = "turbulence") -> float:
     return float(level)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def one_minus_cosine(t_s, start_s, duration_s):
     """The 1-cosine gust's speed over its peak at time t: 0 outside [start, start + duration]."""
     if t_s < start_s or t_s > start_s + duration_s:
@@ -166,7 +166,7 @@ def one_minus_cosine(t_s, start_s, duration_s):
     return 0.5 * (1.0 - math.cos(2.0 * math.pi * (t_s - start_s) / duration_s))
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def gusts_at(t_s, gusts):
     """Sum of every gust of a ``gust_table`` at time t, earth frame [m/s], as (x, y, z)."""
     gx = gy = gz = 0.0
@@ -179,7 +179,7 @@ def gusts_at(t_s, gusts):
     return gx, gy, gz
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def turbulence_step(x, noise, Phi, L, C, scratch):
     """One step of a drone's Dryden state x (5,): returns the turbulence C x now (earth frame, m/s,
     as (x, y, z)) and advances x to Phi x + L noise (noise: 5 standard normals; scratch: 5 floats)."""

@@ -8,12 +8,15 @@ os.environ.setdefault("MAVLINK20", "1")
 import numpy as np
 import pytest
 
+from triswarm.protocol import jit
 from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.rfl import RFL
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
+
+jit.cache_on_disk()  # the tests are an edge: protocol/'s compiled code is kept in numba's cache, as the programs keep it
 
 
 def pytest_sessionstart(session) -> None:

@@ -19,10 +19,21 @@ def test_dialect_numbers_are_the_codec_numbers():
     assert mavlink.MAV_CMD_TRISWARM_PLAN_HEADER == CMD_PLAN_HEADER
     assert mavlink.MAV_CMD_TRISWARM_PLAN_DATA == CMD_PLAN_DATA
     assert mavlink.MAV_MISSION_INVALID == MISSION_INVALID and mavlink.MAV_MISSION_UNSUPPORTED == MISSION_UNSUPPORTED
-    # messages are common.xml's, byte for byte: every CRC extra is the same
+    # messages are common.xml's, byte for byte: no message of our own (the pinned common.xml's are
+    # ours, tests/test_dialect.py), and every one the installed pymavlink knows has the same CRC extra
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+
     from pymavlink.dialects.v20 import common
 
-    assert {k: m.crc_extra for k, m in common.mavlink_map.items()} == {k: m.crc_extra for k, m in mavlink.mavlink_map.items()}
+    dialect = Path(__file__).resolve().parents[1] / "protocol" / "dialect"
+    assert ET.parse(dialect / "triswarm.xml").getroot().find("messages") is None
+    pinned = {int(m.get("id")) for name in ("common.xml", "standard.xml", "minimal.xml")
+              for m in ET.parse(dialect / name).getroot().iter("message")}
+    assert set(mavlink.mavlink_map) == pinned
+    shared = mavlink.mavlink_map.keys() & common.mavlink_map.keys()
+    assert len(shared) > 200
+    assert {k: common.mavlink_map[k].crc_extra for k in shared} == {k: mavlink.mavlink_map[k].crc_extra for k in shared}
 
 
 def test_round_trip_through_float32_and_real_frames(paper_spec):

@@ -1,5 +1,5 @@
-"""MAVLink 2 signing between the ground station and the companions: the key file, the codec's checks,
-and against the real stack (sitl up and one companion with --signing-key), what the companion takes
+"""MAVLink 2 signing between the ground station and the companions: the key file, the codec's checks
+(on the clock it is given), and against the real stack (sitl up and one companion with --signing-key), what the companion takes
 from ground stations with the key, without it, with another key, and from a replay."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ import json
 import secrets
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -15,11 +16,12 @@ from collections import Counter
 
 import pytest
 
+from triswarm.companion.state import read_signing_key
 from triswarm.gcs import missions
 from triswarm.gcs.link import GroundLink
 from triswarm.gcs.stack import Stack, free_ports, stop_in_turn
 from triswarm.protocol.mavlink import (COMP_AUTOPILOT, COMP_ONBOARD, SIGNATURE_REFUSED, mavlink, new_codec,
-                                       read_signing_key, setup_signing)
+                                       setup_signing, signing_key, signing_timestamp)
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
 from .stack_helpers import small_plan, wait_for
@@ -29,17 +31,38 @@ KEY = bytes(range(1, 33))
 
 # -- the key file ---------------------------------------------------------------------------------
 
+BAD_KEYS = {"short": KEY[:31], "not-hex": b"g" * 64, "zero": bytes(32), "hex-short": b"ab" * 31}
+
+
+def test_a_key_is_32_bytes_or_64_hex_digits():
+    """The parser (pure: the bytes of the file, and the file's name for the message)."""
+    assert signing_key(KEY, "raw.key") == KEY
+    assert signing_key(KEY.hex().upper().encode() + b"\n", "text.key") == KEY
+    assert signing_key(b"  " + KEY.hex().encode() + b"\r\n", "spaced.key") == KEY
+    for name, content in BAD_KEYS.items():
+        with pytest.raises(ValueError, match=f"^{name}: ") as exc:
+            signing_key(content, name)
+        assert "\n" not in str(exc.value) and str(exc.value).count(". ") == 0
+    with pytest.raises(ValueError, match="not a signing key: expected 32 bytes, or 64 hexadecimal digits "
+                                         r"\(the file has 31 bytes\)"):
+        signing_key(KEY[:31], "short")
+    with pytest.raises(ValueError, match="the all-zero signing key means no signing; make a random one"):
+        signing_key(bytes(32), "zero")
+
+
 def test_key_file_is_32_bytes_or_64_hex_digits(tmp_path):
+    """The edges' reading of the file (companion.state.read_signing_key, which the ground station uses too)."""
     raw, text = tmp_path / "raw.key", tmp_path / "text.key"
     raw.write_bytes(KEY)
     text.write_text(KEY.hex().upper() + "\n")
     assert read_signing_key(raw) == KEY and read_signing_key(text) == KEY
-    for name, content in (("short", KEY[:31]), ("not-hex", b"g" * 64), ("zero", bytes(32)), ("hex-short", b"ab" * 31)):
+    for name, content in BAD_KEYS.items():
         path = tmp_path / name
         path.write_bytes(content)
-        with pytest.raises(ValueError, match=name):
+        with pytest.raises(ValueError, match=f"^{path}: "):
             read_signing_key(path)
-    with pytest.raises(ValueError, match="cannot read"):
+    with pytest.raises(ValueError, match=f"^{tmp_path / 'missing.key'}: cannot read the signing key "
+                                         r"\(No such file or directory\)$"):
         read_signing_key(tmp_path / "missing.key")
 
 
@@ -65,10 +88,10 @@ def parsed(codec, frame: bytes) -> str:
 
 def test_signed_frames_pass_once_and_only_with_the_key():
     receiver, refused = new_codec(1, COMP_ONBOARD), Counter()
-    setup_signing(receiver, KEY, 1, lambda msg_id: msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT, refused)
+    setup_signing(receiver, KEY, 1, lambda msg_id: msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT, refused, clock=time.time)
     signer, other, plain = new_codec(255, 190), new_codec(255, 190), new_codec(255, 190)
-    setup_signing(signer, KEY, 3)
-    setup_signing(other, bytes(reversed(KEY)), 3)
+    setup_signing(signer, KEY, 3, clock=time.time)
+    setup_signing(other, bytes(reversed(KEY)), 3, clock=time.time)
     command = mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0)
     heartbeat = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
 
@@ -91,8 +114,8 @@ def test_signing_streams_survive_a_round_trip_and_garbage_is_skipped(tmp_path):
     from triswarm.companion.state import StateStore
 
     sender, receiver = new_codec(254, 190), new_codec(1, COMP_ONBOARD)
-    setup_signing(sender, KEY, 7)
-    setup_signing(receiver, KEY, 1)
+    setup_signing(sender, KEY, 7, clock=time.time)
+    setup_signing(receiver, KEY, 1, clock=time.time)
     frame = mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0,
                                                  0, 0, 0, 0, 0, 0, 0).pack(sender)
     assert parsed(receiver, frame) == "COMMAND_LONG"
@@ -100,10 +123,10 @@ def test_signing_streams_survive_a_round_trip_and_garbage_is_skipped(tmp_path):
     store.save_signing_streams(receiver.signing.streams())
 
     forgetful = new_codec(1, COMP_ONBOARD)  # restarted without the streams: the stream looks new,
-    setup_signing(forgetful, KEY, 1)         # and a new stream may be up to a minute old
+    setup_signing(forgetful, KEY, 1, clock=time.time)  # and a new stream may be up to a minute old
     assert parsed(forgetful, frame) == "COMMAND_LONG"
     restarted = new_codec(1, COMP_ONBOARD)
-    setup_signing(restarted, KEY, 1)
+    setup_signing(restarted, KEY, 1, clock=time.time)
     saved = store.load_signing_streams()
     assert list(saved) == ["7,254,190"]
     garbage = {"7,254": 1, "7,254,999": 1, "a,b,c": 1, "1,2,3": "late", "4,5,6": -1, "8,9,10": 2**48}
@@ -114,6 +137,33 @@ def test_signing_streams_survive_a_round_trip_and_garbage_is_skipped(tmp_path):
 
     store.signing_path.write_text("[1, 2")
     assert store.load_signing_streams() == {} and "unusable signing streams" in store.problem
+
+
+def test_timestamps_follow_the_clock_given_and_never_fall_behind_it():
+    """The signing state reads no clock of its own: the caller's (here a fake one) sets the floor
+    of its timestamps, and a new stream more than a minute behind it is refused as a replay."""
+    now = [1.7e9]
+    sender, receiver, refused = new_codec(254, 190), new_codec(1, COMP_ONBOARD), Counter()
+    setup_signing(sender, KEY, 7, clock=lambda: now[0])
+    setup_signing(receiver, KEY, 1, counters=refused, clock=lambda: now[0] + 55.0)
+
+    def stamp(frame: bytes) -> int:
+        low, high = struct.unpack_from("<IH", frame, len(frame) - 12)
+        return low | high << 32
+
+    def command() -> bytes:
+        return mavlink.MAVLink_command_long_message(1, COMP_ONBOARD, mavlink.MAV_CMD_USER_1, 0,
+                                                    0, 0, 0, 0, 0, 0, 0).pack(sender)
+
+    first = command()
+    assert stamp(first) == signing_timestamp(now[0])
+    assert stamp(command()) == signing_timestamp(now[0]) + 1  # (one more per frame, as pymavlink does)
+    now[0] += 10.0
+    assert stamp(command()) == signing_timestamp(now[0])  # a quiet link's stamps catch up with the clock
+    assert parsed(receiver, first) == "BAD_DATA" and refused == {"refused_replay": 1}  # 65 s behind: too old
+    assert parsed(receiver, command()) == "COMMAND_LONG"  # 55 s behind: a new stream may be a minute old
+    with pytest.raises(TypeError, match="clock"):
+        setup_signing(new_codec(1, COMP_ONBOARD), KEY, 1)  # no default clock
 
 
 # -- the stack ------------------------------------------------------------------------------------
@@ -162,7 +212,7 @@ def test_the_companion_takes_only_signed_frames_from_the_ground(tmp_path, paper_
 
         # a signed command to the flight controller, through the companion, twice: it gets there once
         codec = new_codec(254, 190)
-        setup_signing(codec, KEY, 7)
+        setup_signing(codec, KEY, 7, clock=time.time)
         frame = mavlink.MAVLink_command_long_message(1, COMP_AUTOPILOT, mavlink.MAV_CMD_USER_1, 0,
                                                      0, 0, 0, 0, 0, 0, 0).pack(codec)
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -198,7 +248,7 @@ class SignedStation:
         self.sock.connect(("127.0.0.1", port))
         self.sock.settimeout(0.05)
         self.codec, self.reader = new_codec(254, 190), new_codec(254, 190)
-        setup_signing(self.codec, KEY, 7)
+        setup_signing(self.codec, KEY, 7, clock=time.time)
 
     def command(self) -> bytes:
         """A new signed COMMAND_LONG for the companion (it answers UNSUPPORTED)."""
