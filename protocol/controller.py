@@ -78,10 +78,16 @@ class FormationController:
     def warm_up(design: Design, rate_hz: float) -> None:
         """Compile the kernels (or load them from numba's cache) now, on a scratch controller, not
         at the first tick in the air: a first compile takes seconds, a cache load some 300 ms."""
+        from .agent import protocol_rows
+
         scratch = FormationController(design, 1, rate_hz)
         scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
-        scratch.observe(np.r_[np.zeros(5), 1.0][None, :], [0])
+        y = np.r_[np.zeros(5), 1.0][None, :]
+        scratch.observe(y, [0])
         scratch.actuate(np.zeros((1, 6)), [0])
+        scratch.hold_tick(y, [0])
+        z = np.zeros((1, 12))
+        protocol_rows(design, z, z, np.zeros(1), np.ones(1), z, design.gamma(z, z))
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0)) -> None:
@@ -208,5 +214,5 @@ class FormationController:
         rows = self._rows(rows)
         self.observe(y, rows)
         last_v = self._v_pipe[-1, rows] if self.lead_ticks else self._v_applied[rows]
-        kernels.push(rows, last_v, last_v[:, :3], True, self._v_pipe, self._motor_pipe, self._v_applied,
-                     np.empty((rows.size, 3)))
+        kept = np.empty((rows.size, 3))  # (the rotor speeds: the pipe keeps its last ones)
+        kernels.push(rows, last_v, kept, True, self._v_pipe, self._motor_pipe, self._v_applied, kept)
