@@ -90,6 +90,8 @@ class Agent:
         except ValueError as exc:  # (one sentence: the file and what is wrong with it)
             raise StartupError(str(exc)) from None
         self.store = StateStore(opts.state_dir)
+        self.rate_hz = opts.rate_hz
+        """The control rate [Hz]: the rate asked for, or the one the attitude comes at."""
         self.params = Params(opts.rate_hz)
         self.health = LoopHealth(1.0 / opts.rate_hz)
         self.autopilot = Autopilot(self.id, opts.fc_url, self.log, self._fc_state)
@@ -126,8 +128,8 @@ class Agent:
     def plan_rfl(self):
         return self.plans.plan.rfl
 
-    def plan_time(self, boot_ms: int) -> float:
-        return self.autopilot.clock.plan_time(boot_ms, self.plans.mission.start_unix_s)
+    def plan_time(self, boot_us: int) -> float:
+        return self.autopilot.clock.plan_time(boot_us, self.plans.mission.start_unix_s)
 
     def controller_reset(self, x: np.ndarray) -> None:
         self.bank.reset(x[None, :], rows=np.array([self.row]))
@@ -181,12 +183,21 @@ class Agent:
             self.bus.reliable_estimates()
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.design = plan.design
-        self.bank = self.host.controller(plan.design, self.opts.rate_hz, plan.controller.thrust_adaptation_rate_1_s)
+        self.bank = self.host.controller(plan.design, self.rate_hz, plan.controller.thrust_adaptation_rate_1_s)
         self.params.declare("COUPLING_C", plan.design.c)
         omega, alpha = model.hover_trim(plan.airframe)
         self.idle = (omega * IDLE_FRACTION, alpha)
         self.flight.opened()
         self.publish_status()
+
+    def set_rate(self, rate_hz: float) -> None:
+        """Control at ``rate_hz`` (the rate the attitude comes at), before any flight."""
+        self.rate_hz = rate_hz
+        self.params.values["CTRL_RATE_HZ"] = rate_hz
+        self.health.period_s = 1.0 / rate_hz
+        if self.bank is not None:
+            plan = self.plans.plan
+            self.bank = self.host.controller(plan.design, rate_hz, plan.controller.thrust_adaptation_rate_1_s)
 
     def _reopen(self, reopen: bool) -> None:
         if reopen or self.bus is None:
@@ -258,7 +269,12 @@ class Agent:
             self.say(f"mission stopped: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
     async def _mission(self) -> None:
-        await self.autopilot.setup(self.opts.rate_hz, self.heartbeat)
+        af = self.plans.plan.airframe if self.plans.plan is not None else TABLE_1
+        rate_hz = await self.autopilot.setup(self.rate_hz, self.heartbeat,
+                                             (af.max_rotor_speed_rad_s * 30.0 / math.pi, math.degrees(af.servo_limit_rad)),
+                                             self.say)
+        if rate_hz != self.rate_hz:
+            self.set_rate(rate_hz)
         if self.bus is not None and self.autopilot.answers.lockstep:
             self.bus.reliable_estimates()
         m = self.plans.mission

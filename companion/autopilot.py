@@ -1,16 +1,18 @@
 """The flight-controller face of an agent: its link, what the autopilot says of itself, its clock,
 its telemetry turned into samples, and the commands the companion sends it.
 
-Telemetry: a sample is ATTITUDE and LOCAL_POSITION_NED of the same ``time_boot_ms``, converted to
-the paper's frames here (the only place they are read); each one waits in ``backlog`` for the
-control loop, which the link wakes after every read. A repeat of the newest state (a simulator in
-lockstep offering it again) is not a new sample, but is answered again (``settle``). SYSTEM_TIME
-sets the clock (``clock.FcClock``); HEARTBEAT and EXTENDED_SYS_STATE the vehicle's state, which
-``on_state`` hears of.
+Telemetry: attitude, position and gyro rates come on streams of their own (``telemetry.py`` turns
+them into a sample at each new attitude instant, the position brought to it). Of the messages
+that carry the same quantity, one is used: ATTITUDE before ATTITUDE_QUATERNION before ODOMETRY for
+the attitude, LOCAL_POSITION_NED before ODOMETRY for the position; a less preferred one takes
+over when the preferred one has not come for FALLBACK_US. Every message is converted to the
+paper's frames here, the only place they are read. SYSTEM_TIME sets the clock
+(``clock.FcClock``); HEARTBEAT and EXTENDED_SYS_STATE the vehicle's state, which ``on_state``
+hears of. Samples wait in ``backlog`` for the control loop, which the link wakes after every read.
 
-Set-up (``setup``): wait for the autopilot, read its actuator scaling (MOT_MAX_RPM, SERVO_LIM_DEG)
-and whether it is a simulator in lockstep (SIM_LOCKSTEP), ask for the telemetry at the control
-rate, and wait for its clock.
+Set-up (``setup``): wait for the autopilot (saying every few seconds what it waits for), read its
+actuator scaling (MOT_MAX_RPM, SERVO_LIM_DEG) and whether it is a simulator in lockstep
+(SIM_LOCKSTEP), ask for the telemetry at the control rate, and wait for its clock.
 """
 
 from __future__ import annotations
@@ -21,29 +23,23 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 
+from triswarm.protocol.frames import attitude_from_mavlink, body_velocity_to_earth
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 
 from .actuators import ActuatorControlTarget
-from .clock import REBOOT_JUMP_MS, Answers, FcClock
+from .clock import Answers, FcClock
 from .links import MavLink
+from .telemetry import Assembler, Sample
 
-
-@dataclass(slots=True)
-class Sample:
-    """One telemetry sample, in the paper's frames (earth: x north, y west, z up; body FLU)."""
-    t_rx: float                      # Unix time the datagram arrived (kernel receive time on UDP) [s]
-    boot_ms: int                     # the flight controller's time of the sample [ms since its boot]
-    eta_rad: tuple                   # roll, pitch, yaw
-    rate_b_rad_s: tuple              # body rates p, q, r
-    position_e_m: tuple
-    velocity_e_m_s: tuple
-
-    @property
-    def y(self) -> tuple:
-        """The measured output y = (eta, lambda) of the observer (73)."""
-        return self.eta_rad + self.position_e_m
+FALLBACK_US = 500_000
+"""A less preferred message carries a quantity once the preferred one has not come for this long."""
+ATTITUDE_SOURCES = ("ATTITUDE", "ATTITUDE_QUATERNION", "ODOMETRY")
+POSITION_SOURCES = ("LOCAL_POSITION_NED", "ODOMETRY")
+MEASURE_US = 500_000
+"""Set-up measures the telemetry's rates over this much of the flight controller's clock."""
+WAITING_SAY_EVERY_S = 5.0
+"""While set-up waits for the flight controller, it says what for this often [s, wall]."""
 
 
 class Autopilot:
@@ -68,7 +64,9 @@ class Autopilot:
         self.last_sample: Sample | None = None
         self.backlog: deque[Sample] = deque(maxlen=50)
         """Samples not acted on yet (the control loop takes them)."""
-        self._att: tuple | None = None  # the newest ATTITUDE: (boot_ms, eta, rates)
+        self.assembler = Assembler()
+        self.heard_at_us: dict[str, int] = {}
+        """Each telemetry message's newest stamp [boot us]."""
         self._woke = False
         self._pending: dict = {}
 
@@ -88,18 +86,8 @@ class Autopilot:
     def take(self, msg, t_rx: float) -> None:
         """A message from this agent's autopilot."""
         t = msg.get_type()
-        if t == "ATTITUDE":
-            self.answers.telemetry(msg.time_boot_ms)
-            self._att = (msg.time_boot_ms, (msg.roll, -msg.pitch, -msg.yaw),
-                         (msg.rollspeed, -msg.pitchspeed, -msg.yawspeed))  # FRD in NED -> the paper's
-        elif t == "LOCAL_POSITION_NED":
-            self.answers.telemetry(msg.time_boot_ms)
-            att = self._att
-            if att is not None and att[0] == msg.time_boot_ms:
-                self._sample(Sample(t_rx, msg.time_boot_ms, att[1], att[2], (msg.x, -msg.y, -msg.z),
-                                    (msg.vx, -msg.vy, -msg.vz)))
-        elif t in ("ATTITUDE_QUATERNION", "ODOMETRY", "HIGHRES_IMU"):
-            self.answers.telemetry(msg.time_boot_ms if hasattr(msg, "time_boot_ms") else msg.time_usec // 1000)
+        if t in _TELEMETRY:
+            self._telemetry(t, msg, t_rx)
         elif t == "HEARTBEAT":
             self.heard = True
             self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -116,14 +104,44 @@ class Autopilot:
         elif t == "PARAM_VALUE":
             self._resolve(("param", msg.param_id), msg.param_value)
 
+    def _telemetry(self, t: str, msg, t_rx: float) -> None:
+        t_us = msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else int(msg.time_usec)
+        self.answers.telemetry(t_us)
+        self.heard_at_us[t] = t_us
+        asm = self.assembler
+        if t in ATTITUDE_SOURCES and self._preferred(t, ATTITUDE_SOURCES, t_us):
+            if t == "ATTITUDE":
+                eta = (msg.roll, -msg.pitch, -msg.yaw)  # FRD in NED -> the paper's
+            else:
+                eta = attitude_from_mavlink(msg.q)
+            asm.take_attitude(t_us, eta, (msg.rollspeed, -msg.pitchspeed, -msg.yawspeed))
+        if t in POSITION_SOURCES and self._preferred(t, POSITION_SOURCES, t_us):
+            if t == "LOCAL_POSITION_NED":
+                asm.take_position(t_us, (msg.x, -msg.y, -msg.z), (msg.vx, -msg.vy, -msg.vz))
+            elif msg.frame_id == mavlink.MAV_FRAME_LOCAL_NED and msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD:
+                asm.take_position(t_us, (msg.x, -msg.y, -msg.z), body_velocity_to_earth(msg.q, (msg.vx, msg.vy, msg.vz)))
+            else:
+                asm.counters["odometry_frames_not_used"] += 1
+        if t == "HIGHRES_IMU":
+            asm.take_gyro(t_us, (msg.xgyro, -msg.ygyro, -msg.zgyro))
+        s = asm.sample(t_rx)
+        if s is not None:
+            self._sample(s)
+
+    def _preferred(self, t: str, sources: tuple[str, ...], t_us: int) -> bool:
+        """Whether message ``t`` carries its quantity now: no more preferred one came lately."""
+        for better in sources[:sources.index(t)]:
+            heard = self.heard_at_us.get(better)
+            if heard is not None and 0 <= t_us - heard < FALLBACK_US:
+                return False
+        return True
+
     def _sample(self, s: Sample) -> None:
         last = self.last_sample
-        if last is not None and 0 <= last.boot_ms - s.boot_ms < REBOOT_JUMP_MS:
-            return  # the same state again (a lockstep simulator's re-send): one tick each
         if last is not None and s.t_rx - last.t_rx > 0.05:
-            self.log.debug(f"telemetry gap {1e3 * (s.t_rx - last.t_rx):.0f} ms (fc time {s.boot_ms - last.boot_ms} ms)")
+            self.log.debug(f"telemetry gap {1e3 * (s.t_rx - last.t_rx):.0f} ms (fc time {(s.boot_us - last.boot_us) / 1e3:.0f} ms)")
         self.last_sample = s
-        self.answers.defer = self._woke = self.clock.advance(s.boot_ms)
+        self.answers.defer = self._woke = self.clock.advance(s.boot_us)
         self.backlog.append(s)
 
     def take_woke(self) -> bool:
@@ -159,13 +177,20 @@ class Autopilot:
         return await self._request(("param", name), lambda: self.send(
             mavlink.MAVLink_param_request_read_message(self.sysid, 1, name.encode(), -1)))
 
-    async def setup(self, rate_hz: float, heartbeat: Callable[[], object]) -> None:
-        """Wait for the flight controller, learn its actuator scaling, ask for the telemetry."""
-        while not self.heard:
-            self.send(heartbeat())
-            await asyncio.sleep(0.2)
-        self.max_rpm = await self.param("MOT_MAX_RPM")
-        self.servo_deg = await self.param("SERVO_LIM_DEG")
+    async def setup(self, rate_hz: float, heartbeat: Callable[[], object], scaling: tuple[float, float],
+                    say: Callable[[str], None]) -> float:
+        """Wait for the flight controller, learn its actuator scaling (its MOT_MAX_RPM and
+        SERVO_LIM_DEG, else ``scaling``: the plan airframe's [RPM, deg]), ask for the telemetry at
+        ``rate_hz`` and see what comes. Says what it waits for, every WAITING_SAY_EVERY_S.
+        Returns the rate [Hz] the attitude comes at (``rate_hz`` if within 5 % of it)."""
+        await self._wait("a HEARTBEAT", lambda: self.heard, lambda: self.send(heartbeat()), say)
+        try:
+            self.max_rpm = await self.param("MOT_MAX_RPM")
+            self.servo_deg = await self.param("SERVO_LIM_DEG")
+        except TimeoutError:  # an autopilot, not triswarm's simulator: the plan's airframe says
+            self.max_rpm, self.servo_deg = scaling
+            say(f"the flight controller has no MOT_MAX_RPM / SERVO_LIM_DEG: actuator commands scaled to the plan's "
+                f"airframe ({self.max_rpm:g} RPM, {self.servo_deg:g} deg)")
         try:
             self.answers.lockstep = await self.param("SIM_LOCKSTEP") == 1.0
         except TimeoutError:  # an autopilot, not triswarm's simulator
@@ -177,37 +202,88 @@ class Autopilot:
                            (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
                            (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
             await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
-        await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)
-        while not self.clock.known:
-            await asyncio.sleep(0.05)
+        request_time = lambda: self.send(mavlink.MAVLink_command_long_message(  # noqa: E731
+            self.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 0, 0, 0, 0, 0, 0))
+        await self._wait("SYSTEM_TIME", lambda: self.clock.known, request_time, say)
+        if self.answers.lockstep:
+            # (a simulator in lockstep sends what it is asked, and its clock stands while this set-up
+            # holds its answers: the rates are told once they have been seen, nothing waits for them)
+            attitude_hz = rate_hz
+            asyncio.ensure_future(self._measure_rates(rate_hz, None))
+        else:
+            attitude_hz = await self._measure_rates(rate_hz, say)
         self.output = ActuatorControlTarget(self.link.codec, self.sysid, self.max_rpm * math.pi / 30.0,
                                             math.radians(self.servo_deg))
+        self.answers.holding = False
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,
         # which would otherwise stall the loop for tens of milliseconds at a time.
         gc.collect()
         gc.freeze()
+        return attitude_hz
+
+    async def _wait(self, what: str, done: Callable[[], bool], poke: Callable[[], None] | None,
+                    say: Callable[[str], None] | None) -> None:
+        """Until ``done()``, poking every 0.2 s and saying every WAITING_SAY_EVERY_S what for (not
+        with ``say`` None)."""
+        since = told = time.monotonic()
+        while not done():
+            if poke is not None:
+                poke()
+            await asyncio.sleep(0.2)
+            now = time.monotonic()
+            if say is not None and now - told >= WAITING_SAY_EVERY_S and not done():
+                told = now
+                say(f"waiting {now - since:.0f} s for {what} from the flight controller (system {self.sysid}) "
+                    f"on {self.link.url}")
+
+    async def _measure_rates(self, rate_hz: float, say: Callable[[str], None] | None) -> float:
+        """The attitude's and the position's rates over half a second of the flight controller's
+        clock, as they come now that they were asked for; said in one line."""
+        asm = self.assembler
+        for stream in (asm.attitude, asm.position):
+            stream.count, stream.first_us = 0, -1
+        await self._wait("attitude (ATTITUDE, ATTITUDE_QUATERNION or ODOMETRY)", lambda: asm.attitude.count >= 2, None, say)
+        await self._wait("position (LOCAL_POSITION_NED or ODOMETRY)", lambda: asm.position.count >= 2, None, say)
+        await self._wait("half a second of telemetry", lambda: asm.attitude.t_us - asm.attitude.first_us >= MEASURE_US
+                         and asm.position.t_us - asm.position.first_us >= MEASURE_US, None, say)
+        att_hz, pos_hz = asm.attitude.rate_hz(), asm.position.rate_hz()
+        if self.answers.lockstep:
+            self.log.info(f"telemetry: attitude {att_hz:.0f} Hz, position {pos_hz:.0f} Hz (in lockstep: as asked)")
+            return rate_hz
+        sources = [t for t in ATTITUDE_SOURCES if t in self.heard_at_us][:1] + \
+                  [t for t in POSITION_SOURCES if t in self.heard_at_us][:1]
+        line = f"telemetry: attitude {att_hz:.0f} Hz ({sources[0]}), position {pos_hz:.0f} Hz ({sources[-1]})"
+        if pos_hz < 0.95 * att_hz:
+            line += f", brought up to {1e3 / pos_hz:.0f} ms forward to the attitude's instants"
+        if abs(att_hz - rate_hz) > 0.05 * rate_hz:
+            line += f"; asked {rate_hz:g} Hz: the controller runs at {att_hz:.0f} Hz"
+            say(line)
+            return float(round(att_hz))
+        self.log.info(line)
+        return rate_hz
 
     # -- commanding it --------------------------------------------------------------------------
 
-    def actuate(self, boot_ms: int, omega_rad_s, alpha_rad) -> None:
-        """The command answering the sample of ``boot_ms``."""
-        self.answers.command(boot_ms, self.output.command(boot_ms, omega_rad_s, alpha_rad))
+    def actuate(self, s: Sample, omega_rad_s, alpha_rad) -> None:
+        """The command answering sample ``s`` (and whatever telemetry came with it)."""
+        t_us = self.answers.answer_time(s.boot_us)
+        self.answers.command(t_us, self.output.command(t_us, omega_rad_s, alpha_rad))
 
     def settle(self, busy: bool) -> None:
         """After a sample was taken: in lockstep, answer what is due and was not commanded."""
         self.answers.settle(busy, self._no_command)
 
-    def _no_command(self, boot_ms: int) -> bytes:
+    def _no_command(self, boot_us: int) -> bytes:
         if self.output is None:  # (not set up: the simulator waits for an answer all the same)
-            return ActuatorControlTarget(self.link.codec, self.sysid, 1.0, 1.0).no_command(boot_ms)
-        return self.output.no_command(boot_ms)
+            return ActuatorControlTarget(self.link.codec, self.sysid, 1.0, 1.0).no_command(boot_us)
+        return self.output.no_command(boot_us)
 
-    def unix(self, boot_ms: int) -> float:
+    def unix(self, boot_us: int) -> float:
         """The flight controller's time of a sample, as Unix time (its SYSTEM_TIME clock)."""
-        return self.clock.unix(boot_ms)
+        return self.clock.unix(boot_us)
 
     def now_unix(self) -> float:
         return self.clock.now()
 
-    def telemetry_age_s(self, s: Sample) -> float:
-        return time.time() - self.clock.unix(s.boot_ms)
+
+_TELEMETRY = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "ODOMETRY", "HIGHRES_IMU"})

@@ -1,7 +1,7 @@
 """The flight controller's clock, as its telemetry tells it, and the answers it is owed in lockstep.
 
 A companion runs on its flight controller's clock: SYSTEM_TIME gives the offset between the
-controller's boot time and Unix time, and each sample's ``time_boot_ms`` says how far that clock
+controller's boot time and Unix time, and each sample's stamp (boot time) says how far that clock
 has gone. Plan time, start times, leader commands and every timeout of the protocol are read on
 it, so the same code runs in real time and on a simulator's clock (lockstep), where simulated
 seconds may pass faster or slower than the wall's.
@@ -23,8 +23,7 @@ import itertools
 import time
 from collections.abc import Callable
 
-REBOOT_JUMP_MS = 1000
-"""A sample this much older than the newest is a restarted flight controller, not a repeat."""
+from .telemetry import REBOOT_JUMP_US
 
 
 class FcClock:
@@ -35,8 +34,8 @@ class FcClock:
     def __init__(self) -> None:
         self.offset_us: int | None = None
         """Unix time minus the flight controller's boot time [us] (from SYSTEM_TIME)."""
-        self.boot_ms: int | None = None
-        """The newest sample's flight-controller time [ms since its boot]."""
+        self.boot_us: int | None = None
+        """The newest sample's flight-controller time [us since its boot]."""
         self._waiters: list = []
         self._order = itertools.count()
 
@@ -48,28 +47,28 @@ class FcClock:
         """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]."""
         self.offset_us = int(time_unix_usec) - int(time_boot_ms) * 1000
 
-    def unix(self, boot_ms: int) -> float:
+    def unix(self, boot_us: int) -> float:
         """A flight-controller time as Unix time (the wall clock until SYSTEM_TIME was heard)."""
-        return time.time() if self.offset_us is None else (self.offset_us + boot_ms * 1000) / 1e6
+        return time.time() if self.offset_us is None else (self.offset_us + boot_us) / 1e6
 
     def now(self) -> float:
         """The flight controller's time now, as Unix time: that of its newest sample."""
-        if self.offset_us is None or self.boot_ms is None:
+        if self.offset_us is None or self.boot_us is None:
             return time.time()
-        return (self.offset_us + self.boot_ms * 1000) / 1e6
+        return (self.offset_us + self.boot_us) / 1e6
 
-    def plan_time(self, boot_ms: int, start_unix_s: float) -> float:
+    def plan_time(self, boot_us: int, start_unix_s: float) -> float:
         """A flight-controller time as plan time: seconds since ``start_unix_s``, exactly."""
         if self.offset_us is None:
             return time.time() - start_unix_s
-        return (self.offset_us + boot_ms * 1000 - round(start_unix_s * 1e6)) / 1e6
+        return (self.offset_us + boot_us - round(start_unix_s * 1e6)) / 1e6
 
     def _now_us(self) -> int | None:
-        return None if self.offset_us is None or self.boot_ms is None else self.offset_us + self.boot_ms * 1000
+        return None if self.offset_us is None or self.boot_us is None else self.offset_us + self.boot_us
 
-    def advance(self, boot_ms: int) -> bool:
-        """A sample of time ``boot_ms`` came: wake whoever waits for that time. True if it woke any."""
-        self.boot_ms = boot_ms
+    def advance(self, boot_us: int) -> bool:
+        """A sample of time ``boot_us`` came: wake whoever waits for that time. True if it woke any."""
+        self.boot_us = boot_us
         now_us = self._now_us()
         woke = False
         while now_us is not None and self._waiters and self._waiters[0][0] <= now_us:
@@ -96,26 +95,34 @@ class Answers:
     def __init__(self, write: Callable[[bytes], None]) -> None:
         self.lockstep = False
         self._write = write
-        self.due_ms = -1        # the newest high-rate telemetry time received [boot ms]
-        self.answered_ms = -1   # the newest answered
+        self.due_us = -1        # the newest high-rate telemetry stamp received [boot us]
+        self.answered_us = -1   # the newest answered
         self._last_frame: bytes | None = None
         self._repeat = False
         self.defer = False
         """The state being answered woke a wait: its answer leaves at the end of the loop's turn."""
+        self.holding = True
+        """No answers yet: the companion is setting up. In lockstep the simulator's clock stands until
+        every companion has answered, so a set-up takes no simulated time, however long it takes."""
 
-    def telemetry(self, boot_ms: int) -> None:
-        """A high-rate message of time ``boot_ms`` (several may share one instant)."""
-        if boot_ms < self.due_ms - REBOOT_JUMP_MS:  # a restarted flight controller: a new clock
-            self.answered_ms = -1
-            self.due_ms = boot_ms
-        elif boot_ms > self.due_ms:
-            self.due_ms = boot_ms
-        if boot_ms <= self.answered_ms:
+    def telemetry(self, t_us: int) -> None:
+        """A high-rate message stamped ``t_us`` (several may share one state)."""
+        if t_us < self.due_us - REBOOT_JUMP_US:  # a restarted flight controller: a new clock
+            self.answered_us = -1
+            self.due_us = t_us
+        elif t_us > self.due_us:
+            self.due_us = t_us
+        if t_us <= self.answered_us:
             self._repeat = True  # sent again: the answer may have been lost
 
-    def command(self, boot_ms: int, frame: bytes) -> None:
-        """Send an actuator command answering ``boot_ms`` (see ``defer``)."""
-        self.answered_ms = boot_ms
+    def answer_time(self, t_us: int) -> int:
+        """The stamp an answer to a sample of ``t_us`` carries: the newest telemetry it answers
+        (the streams of one state may carry stamps of their own)."""
+        return max(t_us, self.due_us)
+
+    def command(self, t_us: int, frame: bytes) -> None:
+        """Send an actuator command answering the telemetry up to ``t_us`` (see ``defer``)."""
+        self.answered_us = t_us
         self._last_frame = frame
         if self.lockstep and self.defer:
             asyncio.get_running_loop().call_soon(self._write, frame)
@@ -126,10 +133,9 @@ class Answers:
         """After the telemetry was taken: in lockstep, answer what is due and not answered (unless
         a tick is still ``busy`` waiting for neighbours), and answer a repeated state again."""
         repeat, self._repeat = self._repeat, False
-        if not self.lockstep or busy:
+        if not self.lockstep or busy or self.holding:
             return
-        if self.due_ms > self.answered_ms:
-            self.command(self.due_ms, no_command(self.due_ms))
+        if self.due_us > self.answered_us:
+            self.command(self.due_us, no_command(self.due_us))
         elif repeat and self._last_frame is not None:
             asyncio.get_running_loop().call_soon(self._write, self._last_frame)
-

@@ -132,7 +132,9 @@ class Flight:
                 if result != mavlink.MAV_RESULT_ACCEPTED:
                     raise RuntimeError(f"the flight controller refused external control ({result})")
                 fc.mode = CustomMode.EXTERNAL
-            self.begin_entry(max(0.0, a.plan_time(fc.last_sample.boot_ms)))
+            while self.state_now() is None:  # (a position to start from)
+                await asyncio.sleep(0.05)
+            self.begin_entry(max(0.0, a.plan_time(fc.last_sample.boot_us)))
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
@@ -147,13 +149,15 @@ class Flight:
             raise RuntimeError("arming refused")
 
     def state_now(self) -> np.ndarray | None:
-        """The measured state x of (28) from the newest sample, or None before one came."""
+        """The measured state x of (28) from the newest sample, or None before one with a position
+        came (body rates that did not come count as zero)."""
         s = self.a.autopilot.last_sample
-        if s is None:
+        if s is None or not all(math.isfinite(c) for c in s.position_e_m + s.velocity_e_m_s):
             return None
         eta = np.array(s.eta_rad)
         R = model.rotation_body_to_earth(eta)
-        return np.concatenate([R.T @ np.array(s.velocity_e_m_s), s.rate_b_rad_s, eta, s.position_e_m])
+        rates = np.nan_to_num(np.array(s.rate_b_rad_s))
+        return np.concatenate([R.T @ np.array(s.velocity_e_m_s), rates, eta, s.position_e_m])
 
     def begin_entry(self, t0_s: float) -> None:
         """Take off from where the drone rests and enter the formation (the plan's entry) from plan
@@ -175,11 +179,11 @@ class Flight:
         if not fc.armed or fc.landed:
             if not fc.armed:
                 await self.arm()
-            self.begin_entry(a.plan_time(fc.last_sample.boot_ms) + 1.0)
+            self.begin_entry(a.plan_time(fc.last_sample.boot_us) + 1.0)
             return
         x = self.state_now()
         a.controller_reset(x)
-        t_plan = a.plan_time(fc.last_sample.boot_ms)
+        t_plan = a.plan_time(fc.last_sample.boot_us)
         self.flying = self.mine(a.plans.formation)
         self.hold = braking(t_plan + a.lead_s, a.plan_rfl.phi_r(x[None, :])[0])
         self.rejoin(t_plan, RelativeTo(self.hold, a.plans.leader))

@@ -144,7 +144,7 @@ class ControlLoop:
                         a.bank.hold_tick(np.array([old.y]), [a.row])
                 except Exception:
                     a.tick_failed()
-            half = 0.5 / a.opts.rate_hz
+            half = 0.5 / a.rate_hz
             together = sum(b.t_rx - p.t_rx < half for p, b in zip(samples, samples[1:]))
             a.health.skipped(len(samples) - 1 - together, together)
         return samples[-1]
@@ -154,7 +154,7 @@ class ControlLoop:
         fc = a.autopilot
         if (fc.ready and a.flight.phase in (Phase.IDLE, Phase.SCHEDULED) and fc.armed and fc.landed
                 and fc.mode == CustomMode.EXTERNAL):
-            fc.actuate(s.boot_ms, *a.idle)
+            fc.actuate(s, *a.idle)
             a.health.tick(s.t_rx, time.time())
 
     # -- 1. observe -----------------------------------------------------------------------------------
@@ -185,7 +185,7 @@ class ControlLoop:
                 continue
             a = t.agent
             try:
-                t.t_plan = a.plan_time(t.sample.boot_ms)
+                t.t_plan = a.plan_time(t.sample.boot_us)
                 t.t_p = t.t_plan + a.lead_s
                 a.flight.t_p = t.t_p
                 if a.plans.switch_due(t.t_plan):
@@ -390,10 +390,10 @@ class ControlLoop:
             for k, t in enumerate(group):
                 a, s = t.agent, t.sample
                 try:
-                    a.autopilot.actuate(s.boot_ms, act.omega_rad_s[k], act.alpha_rad[k])
+                    a.autopilot.actuate(s, act.omega_rad_s[k], act.alpha_rad[k])
                     now = time.time()
                     a.health.tick(s.t_rx, now)
-                    a.health.telemetry_age.add(now - a.autopilot.unix(s.boot_ms))
+                    a.health.telemetry_age.add(now - a.autopilot.unix(s.boot_us))
                     if a.health.ticks % FORMATION_ERROR_EVERY == 0 and a.flight.phase == Phase.FLYING:
                         h, _ = a.plans.formation.offsets(t.t_p)
                         x0, _ = a.plans.leader_state(t.t_p)

@@ -37,6 +37,56 @@ def quaternion_flip(q: np.ndarray) -> np.ndarray:
     return np.asarray(q, dtype=float) * np.array([1.0, 1.0, -1.0, -1.0])
 
 
+def quaternion_from_euler(eta: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles (..., 3) [rad] to the body-to-earth quaternion (..., 4), scalar first."""
+    h = 0.5 * np.asarray(eta, dtype=float)
+    cf, sf = np.cos(h[..., 0]), np.sin(h[..., 0])
+    ct, st = np.cos(h[..., 1]), np.sin(h[..., 1])
+    cp, sp = np.cos(h[..., 2]), np.sin(h[..., 2])
+    return np.stack([cp * ct * cf + sp * st * sf, cp * ct * sf - sp * st * cf,
+                     cp * st * cf + sp * ct * sf, sp * ct * cf - cp * st * sf], axis=-1)
+
+
+def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Body-to-earth quaternion (..., 4) to ZYX Euler angles (..., 3) [rad]."""
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    roll = np.arctan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+    pitch = np.arcsin(np.clip(2.0 * (qw * qy - qz * qx), -1.0, 1.0))
+    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (qy * qy + qz * qz)
+    R[..., 0, 1] = 2 * (qx * qy - qz * qw)
+    R[..., 0, 2] = 2 * (qx * qz + qy * qw)
+    R[..., 1, 0] = 2 * (qx * qy + qz * qw)
+    R[..., 1, 1] = 1 - 2 * (qx * qx + qz * qz)
+    R[..., 1, 2] = 2 * (qy * qz - qx * qw)
+    R[..., 2, 0] = 2 * (qx * qz - qy * qw)
+    R[..., 2, 1] = 2 * (qy * qz + qx * qw)
+    R[..., 2, 2] = 1 - 2 * (qx * qx + qy * qy)
+    return R
+
+
+def attitude_from_mavlink(q_ned_frd) -> tuple[float, float, float]:
+    """A MAVLink attitude quaternion (w, x, y, z; FRD body in NED) as the paper's Euler angles."""
+    qw, qx, qy, qz = (float(c) for c in q_ned_frd)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if not n > 0.0:
+        return (math.nan, math.nan, math.nan)
+    return tuple(euler_from_quaternion(np.array([qw, qx, -qy, -qz]) / n).tolist())
+
+
+def body_velocity_to_earth(q_ned_frd, v_frd) -> tuple[float, float, float]:
+    """A body-frame (FRD) velocity as the paper's earth-frame one, for the attitude q_ned_frd."""
+    q = np.array([float(c) for c in q_ned_frd])
+    R = rotation_from_quaternion(q / np.linalg.norm(q))
+    return tuple((flip(R @ np.asarray(v_frd, dtype=float))).tolist())
+
+
 class LocalProjection:
     """Azimuthal equidistant projection around a home point (as PX4's map_projection): local
     north/east metres <-> latitude/longitude degrees. Exact along great circles through home;

@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from triswarm.protocol.airframe import Airframe
+from triswarm.protocol.frames import euler_from_quaternion, quaternion_from_euler, rotation_from_quaternion  # noqa: F401 (also for callers)
 from triswarm.protocol.dynamics import GRAVITY, KF, MASS, MAX_OMEGA, SERVO_LIMIT, airframe_vector, drag, \
     propulsive_force, rigid_body
 from triswarm.protocol.wind import TURBULENCE_STATES, Dryden, Wind, gusts_at, turbulence_step
@@ -233,40 +234,6 @@ def _output(state, y):
         y[i, 3] = state[i, 0]
         y[i, 4] = state[i, 1]
         y[i, 5] = state[i, 2]
-
-
-def quaternion_from_euler(eta: np.ndarray) -> np.ndarray:
-    """ZYX Euler angles (..., 3) [rad] to the body-to-earth quaternion (..., 4), scalar first."""
-    h = 0.5 * np.asarray(eta, dtype=float)
-    cf, sf = np.cos(h[..., 0]), np.sin(h[..., 0])
-    ct, st = np.cos(h[..., 1]), np.sin(h[..., 1])
-    cp, sp = np.cos(h[..., 2]), np.sin(h[..., 2])
-    return np.stack([cp * ct * cf + sp * st * sf, cp * ct * sf - sp * st * cf,
-                     cp * st * cf + sp * ct * sf, sp * ct * cf - cp * st * sf], axis=-1)
-
-
-def euler_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """Body-to-earth quaternion (..., 4) to ZYX Euler angles (..., 3) [rad]."""
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    roll = np.arctan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
-    pitch = np.arcsin(np.clip(2.0 * (qw * qy - qz * qx), -1.0, 1.0))
-    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return np.stack([roll, pitch, yaw], axis=-1)
-
-
-def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1 - 2 * (qy * qy + qz * qz)
-    R[..., 0, 1] = 2 * (qx * qy - qz * qw)
-    R[..., 0, 2] = 2 * (qx * qz + qy * qw)
-    R[..., 1, 0] = 2 * (qx * qy + qz * qw)
-    R[..., 1, 1] = 1 - 2 * (qx * qx + qz * qz)
-    R[..., 1, 2] = 2 * (qy * qz - qx * qw)
-    R[..., 2, 0] = 2 * (qx * qz - qy * qw)
-    R[..., 2, 1] = 2 * (qy * qz + qx * qw)
-    R[..., 2, 2] = 1 - 2 * (qx * qx + qy * qy)
-    return R
 
 
 @dataclass

@@ -1,0 +1,134 @@
+"""The flight controller's telemetry, as autopilots send it, turned into the samples a tick needs.
+
+Autopilots do not send the state as one message. PX4 stamps ATTITUDE and LOCAL_POSITION_NED with
+the publication times of two estimator topics, at different rates (attitude with every IMU
+sample, position with every filter update); ArduPilot stamps each message with the time it sends
+it; ODOMETRY, where it exists, carries one sample time for the whole state (docs/flight-controllers.md).
+So the companion takes each stream as it comes:
+
+- attitude (ATTITUDE, ATTITUDE_QUATERNION or ODOMETRY, each with its body rates): every new
+  attitude instant is a tick, the stream the loop runs on;
+- position and velocity (LOCAL_POSITION_NED or ODOMETRY): the newest one is brought to the tick's
+  instant with its own velocity, p(t) = p_k + v_k (t - t_k), forwards or backwards;
+- gyro rates (HIGHRES_IMU) when the attitude message carries none.
+
+A sample whose newest position is older than ``MAX_POSITION_AGE_US`` has no position (NaN): the
+observer then runs on its model, and the companion says that the stream stopped. Messages older
+than the newest of their stream (out of order) are dropped and counted; the same instant again
+(a simulator offering its state again) makes no new tick. A jump of more than REBOOT_JUMP back is
+a flight controller that restarted: every stream starts again.
+
+Times are the flight controller's boot clock in microseconds (ms-stamped messages times 1000).
+No I/O: the autopilot face (``autopilot.py``) feeds it parsed messages.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+REBOOT_JUMP_US = 1_000_000
+"""A stamp this much older than the newest of its stream is a restarted flight controller."""
+MAX_POSITION_AGE_US = 250_000
+"""A position older than this at a tick is not used: the observer runs on its model meanwhile."""
+NAN3 = (math.nan, math.nan, math.nan)
+
+
+@dataclass(slots=True)
+class Sample:
+    """One tick's measurements, in the paper's frames (earth: x north, y west, z up; body FLU)."""
+    t_rx: float                      # Unix time the datagram arrived (kernel receive time on UDP) [s]
+    boot_us: int                     # the flight controller's time of the attitude [us since its boot]
+    eta_rad: tuple                   # roll, pitch, yaw
+    rate_b_rad_s: tuple              # body rates p, q, r (NaN if none came)
+    position_e_m: tuple              # brought to boot_us (NaN: no recent position)
+    velocity_e_m_s: tuple
+    position_lag_us: int             # how far the position was brought (boot_us - its stamp)
+
+    @property
+    def boot_ms(self) -> int:
+        return self.boot_us // 1000
+
+    @property
+    def y(self) -> tuple:
+        """The measured output y = (eta, lambda) of the observer (73)."""
+        return self.eta_rad + self.position_e_m
+
+
+class _Stream:
+    __slots__ = ("t_us", "value", "count", "first_us")
+
+    def __init__(self) -> None:
+        self.t_us = -1
+        self.value = None
+        self.count = 0
+        self.first_us = -1
+
+    def take(self, t_us: int, value, counters: Counter, name: str) -> bool:
+        """Keep (t_us, value) if it is the newest (or the first of a restarted clock); False (and
+        counted) if it is out of order."""
+        if 0 <= t_us < self.t_us:
+            if t_us >= self.t_us - REBOOT_JUMP_US:
+                counters[f"{name}_out_of_order"] += 1
+                return False
+            self.count, self.first_us = 0, -1
+        if t_us == self.t_us:
+            return False
+        self.t_us, self.value = t_us, value
+        if self.first_us < 0:
+            self.first_us = t_us
+        self.count += 1
+        return True
+
+    def rate_hz(self) -> float:
+        """Messages per second of the flight controller's clock since the first (NaN: too few)."""
+        if self.count < 3 or self.t_us <= self.first_us:
+            return math.nan
+        return (self.count - 1) * 1e6 / (self.t_us - self.first_us)
+
+
+class Assembler:
+    """The newest of each stream, and a sample at each new attitude instant."""
+
+    def __init__(self) -> None:
+        self.counters: Counter[str] = Counter()
+        self.attitude = _Stream()   # (eta, rates)
+        self.position = _Stream()   # (p, v)
+        self.gyro = _Stream()       # rates
+        self._sampled_us = -1
+
+    def take_attitude(self, t_us: int, eta_rad: tuple, rate_b_rad_s: tuple | None) -> None:
+        if self.attitude.t_us >= 0 and t_us < self.attitude.t_us - REBOOT_JUMP_US:
+            self.restart()
+        self.attitude.take(t_us, (eta_rad, rate_b_rad_s), self.counters, "attitude")
+
+    def take_position(self, t_us: int, position_e_m: tuple, velocity_e_m_s: tuple) -> None:
+        self.position.take(t_us, (position_e_m, velocity_e_m_s), self.counters, "position")
+
+    def take_gyro(self, t_us: int, rate_b_rad_s: tuple) -> None:
+        self.gyro.take(t_us, rate_b_rad_s, self.counters, "gyro")
+
+    def restart(self) -> None:
+        """A restarted flight controller: its clock starts again, and so does every stream."""
+        self.counters["fc_clock_restarted"] += 1
+        self.attitude, self.position, self.gyro = _Stream(), _Stream(), _Stream()
+        self._sampled_us = -1
+
+    def sample(self, t_rx: float) -> Sample | None:
+        """A sample at the newest attitude instant, if it is new and a position has come."""
+        att = self.attitude
+        if att.t_us < 0 or att.t_us == self._sampled_us or self.position.t_us < 0:
+            return None
+        t = att.t_us
+        self._sampled_us = t
+        eta, rates = att.value
+        if rates is None:
+            rates = self.gyro.value if self.gyro.t_us >= 0 and abs(self.gyro.t_us - t) <= MAX_POSITION_AGE_US else NAN3
+        p, v = self.position.value
+        lag = t - self.position.t_us
+        if abs(lag) > MAX_POSITION_AGE_US:
+            self.counters["samples_without_position"] += 1
+            return Sample(t_rx, t, eta, rates, NAN3, NAN3, lag)
+        dt = lag * 1e-6
+        return Sample(t_rx, t, eta, rates, (p[0] + v[0] * dt, p[1] + v[1] * dt, p[2] + v[2] * dt), v, lag)
