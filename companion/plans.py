@@ -25,6 +25,7 @@ import numpy as np
 from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.codec import plan_id
 from triswarm.protocol.formation import Formation, LeaderMove, Shifted
+from triswarm.protocol.frames import flip
 from triswarm.protocol.mavlink import mavlink
 from triswarm.protocol.plan import Plan, PlanError, actuator_demand, in_flight_change_problem, plan_from_dict, spec_from_toml
 from triswarm.protocol.plan_transfer import PlanItem, PlanTransferError, decode_plan, encode_plan
@@ -289,10 +290,13 @@ class Plans:
             return mavlink.MAV_RESULT_DENIED, f"leader command refused: plan time {at_s:.2f} s has passed"
         if msg.command == mavlink.MAV_CMD_TRISWARM_LEADER_GOTO:
             if msg.get_type() == "COMMAND_INT":
-                target = [msg.x / 1000.0, msg.y / 1000.0, float(msg.z)]
+                target_ned_m = [msg.x / 1000.0, msg.y / 1000.0, float(msg.z)]
             else:
-                target = [float(msg.param5), float(msg.param6), float(msg.param7)]
-            yaw = None if math.isnan(msg.param2) else float(msg.param2)
+                target_ned_m = [float(msg.param5), float(msg.param6), float(msg.param7)]
+            if not all(math.isfinite(v) for v in target_ned_m):
+                return mavlink.MAV_RESULT_DENIED, "leader command refused: the target is not a finite point"
+            target = [float(v) for v in flip(target_ned_m)]  # NED on the wire, the plan's frame inside
+            yaw = None if math.isnan(msg.param2) else -float(msg.param2)
             move = {"at_s": at_s, "target_m": target, "yaw_rad": yaw, "speed_m_s": float(msg.param1)}
         else:
             move = {"at_s": at_s, "target_m": None, "yaw_rad": None, "speed_m_s": 1.0}

@@ -17,6 +17,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from triswarm.companion.state import read_signing_key
+from triswarm.protocol.frames import flip
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, encode_plan
 
@@ -230,7 +231,7 @@ def _leader(link: GroundLink, chosen: list[int], command: int, params: list[floa
 
 @leader_app.command("goto", context_settings={"ignore_unknown_options": True})  # "-5" is a number, not an option
 def leader_goto(
-    x_m: Annotated[float, typer.Argument(help="x [m], north of home (the plan's earth frame: x north, y west, z up).")],
+    x_m: Annotated[float, typer.Argument(help="x [m], north of home, in the plan's earth frame (x north, y west, z up); sent in NED.")],
     y_m: Annotated[float, typer.Argument(help="y [m], west of home.")],
     z_m: Annotated[float, typer.Argument(help="z [m], up from home.")],
     yaw: Annotated[Optional[float], typer.Option("--yaw", help="Leader yaw at the end [deg] (default: kept).")] = None,
@@ -246,9 +247,12 @@ def leader_goto(
         if not (math.isfinite(speed) and 0 < speed <= 20):
             raise UserError(f"--speed must be in (0, 20] m/s, got {speed}")
     with swarm_link(manifest, drone, None, tlog, signing_key) as (link, chosen):
-        yaw_rad = math.nan if yaw is None else math.radians(yaw)
+        # the wire speaks NED, as every MAVLink tool does: north, east, down; yaw clockwise from north
+        north_m, east_m, down_m = (float(v) for v in flip([x_m, y_m, z_m]))
+        yaw_ned_rad = math.nan if yaw is None else -math.radians(yaw)
         report(f"leader goto {x_m:g} {y_m:g} {z_m:g}", _leader(link, chosen, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
-                                                               [speed, yaw_rad, 0.0, 0.0, x_m, y_m, z_m], lead_s))
+                                                               [speed, yaw_ned_rad, 0.0, 0.0, north_m, east_m, down_m],
+                                                               lead_s))
 
 
 @leader_app.command("hold")

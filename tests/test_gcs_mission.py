@@ -164,17 +164,18 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             # with the reason, and changes nothing
             t_plan = link.param(1, COMP_ONBOARD, "PLAN_T_S")
             result, why = link.command(1, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
-                                       [100.0, float("nan"), t_plan + 1.0, 0.0, 45.0, -5.0, 0.0])
+                                       [100.0, float("nan"), t_plan + 1.0, 0.0, 45.0, 5.0, 0.0])
             assert result == mavlink.MAV_RESULT_DENIED and "the move cannot be flown" in why, why
             assert "past the motor limit (12000 RPM)" in why, why
 
-            # the leader moves 6 m north at 2 m/s on both drones at once: the pair's midpoint
-            # (the centre of a two-drone polygon) follows it
+            # the leader moves 6 m north at 2 m/s on both drones at once, to 11 m north and 5 m east
+            # of home, given in NED as MAVLink has it (the plan's frame has y west: y = -5 m): the pair's midpoint (the centre of a
+            # two-drone polygon) follows it
             t_plan = link.param(1, COMP_ONBOARD, "PLAN_T_S")
             at = t_plan + 1.0
             for i in (1, 2):
                 result, why = link.command(i, COMP_ONBOARD, mavlink.MAV_CMD_TRISWARM_LEADER_GOTO,
-                                           [2.0, float("nan"), at, 0.0, 11.0, -5.0, 0.0])
+                                           [2.0, float("nan"), at, 0.0, 11.0, 5.0, 0.0])
                 assert result == mavlink.MAV_RESULT_ACCEPTED, why
             move_s = 1.875 * 6.0 / 2.0
             wait_sim(rec.now, stack.start_at + at + move_s + 4.0, stack)

@@ -2589,22 +2589,23 @@ enums["MAV_CMD"][31910].param[7] = """Reserved (0)."""
 MAV_CMD_TRISWARM_LEADER_GOTO = 31911
 enums["MAV_CMD"][31911] = EnumEntry(
     "MAV_CMD_TRISWARM_LEADER_GOTO",
-    """Move the formation's leader x0 to a point of the plan's earth frame (x north, y west, z up,
-          metres from home), at a peak speed, from a plan time common to the swarm.""",
+    """Move the formation's leader x0 to a point given in local NED (x north, y east, z down,
+          metres from home, as LOCAL_POSITION_NED), at a peak speed, from a plan time common to the swarm.
+          The companion turns it into the plan's earth frame (x north, y west, z up).""",
 )
 enums["MAV_CMD"][31911].param[1] = """Peak speed."""
 enums["MAV_CMD"][31911].label[1] = """Speed"""
-enums["MAV_CMD"][31911].param[2] = """Leader yaw at the end (NaN: keep)."""
+enums["MAV_CMD"][31911].param[2] = """Leader yaw at the end, NED (clockwise from north seen from above; NaN: keep)."""
 enums["MAV_CMD"][31911].label[2] = """Yaw"""
 enums["MAV_CMD"][31911].param[3] = """Plan time at which every companion starts the move."""
 enums["MAV_CMD"][31911].label[3] = """At"""
 enums["MAV_CMD"][31911].param[4] = """Reserved (0)."""
-enums["MAV_CMD"][31911].param[5] = """x (COMMAND_INT: millimetres)."""
-enums["MAV_CMD"][31911].label[5] = """X"""
-enums["MAV_CMD"][31911].param[6] = """y (COMMAND_INT: millimetres)."""
-enums["MAV_CMD"][31911].label[6] = """Y"""
-enums["MAV_CMD"][31911].param[7] = """z."""
-enums["MAV_CMD"][31911].label[7] = """Z"""
+enums["MAV_CMD"][31911].param[5] = """North of home (COMMAND_INT: millimetres)."""
+enums["MAV_CMD"][31911].label[5] = """North"""
+enums["MAV_CMD"][31911].param[6] = """East of home (COMMAND_INT: millimetres)."""
+enums["MAV_CMD"][31911].label[6] = """East"""
+enums["MAV_CMD"][31911].param[7] = """Down from home."""
+enums["MAV_CMD"][31911].label[7] = """Down"""
 MAV_CMD_TRISWARM_LEADER_HOLD = 31912
 enums["MAV_CMD"][31912] = EnumEntry("MAV_CMD_TRISWARM_LEADER_HOLD", """Stop the leader where it is at a plan time common to the swarm (it brakes to rest).""")
 enums["MAV_CMD"][31912].param[1] = """Reserved (0)."""
