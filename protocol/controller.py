@@ -29,6 +29,7 @@ Everything here is arrays in, arrays out; time and measurements come in as argum
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -37,6 +38,10 @@ from .design import Design
 from . import kernels
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL
+
+if TYPE_CHECKING:
+    from .plan import Plan
+    from .wind import Wind
 
 
 def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -91,6 +96,16 @@ class FormationController:
         scratch.hold_tick(y, [0])
         z = np.zeros((1, 12))
         protocol_rows(design, z, z, np.zeros(1), np.ones(1), z, design.gamma(z, z))
+
+    @classmethod
+    def for_plan(cls, plan: "Plan", n_agents: int, rate_hz: float, wind: "Wind | None",
+                 delay_s: float | None = None) -> "FormationController":
+        """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
+        thrust adaptation and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
+        way a simulation and the companions make theirs."""
+        return cls(plan.design, n_agents, rate_hz, delay_s,
+                   thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
+                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind))
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
