@@ -183,7 +183,7 @@ class Agent:
             self.bus.reliable_estimates()
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.design = plan.design
-        self.bank = self.host.controller(plan.design, self.rate_hz, plan.controller.thrust_adaptation_rate_1_s)
+        self.bank = self.host.controller(plan, self.rate_hz)
         self.params.declare("COUPLING_C", plan.design.c)
         omega, alpha = model.hover_trim(plan.airframe)
         self.idle = (omega * IDLE_FRACTION, alpha)
@@ -197,7 +197,7 @@ class Agent:
         self.health.period_s = 1.0 / rate_hz
         if self.bank is not None:
             plan = self.plans.plan
-            self.bank = self.host.controller(plan.design, rate_hz, plan.controller.thrust_adaptation_rate_1_s)
+            self.bank = self.host.controller(plan, rate_hz)
 
     def _reopen(self, reopen: bool) -> None:
         if reopen or self.bus is None:

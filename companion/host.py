@@ -71,14 +71,16 @@ class Host:
         bus.n_agents = max(bus.n_agents, n_agents)
         return bus
 
-    def controller(self, design, rate_hz: float, adaptation_1_s: float) -> FormationController:
-        """The controller of ``design``: one row per agent of the process (an agent's row is its
-        place in the process's list)."""
-        key = (id(design), rate_hz, adaptation_1_s)
+    def controller(self, plan, rate_hz: float) -> FormationController:
+        """The controller of ``plan`` (``FormationController.for_plan``, in the air the plan says it
+        is flown in): one row per agent of the process (an agent's row is its place in the
+        process's list)."""
+        key = (id(plan.design), rate_hz, plan.controller.thrust_adaptation_rate_1_s,
+               plan.controller_air_density_kg_m3(plan.wind))
         found = self._controllers.get(key)
         if found is None:
-            ctrl = FormationController(design, len(self.options), rate_hz, thrust_adaptation_rate_1_s=adaptation_1_s)
-            found = self._controllers[key] = (design, ctrl)  # (the design kept: its id stays its own)
+            ctrl = FormationController.for_plan(plan, len(self.options), rate_hz, plan.wind)
+            found = self._controllers[key] = (plan.design, ctrl)  # (the design kept: its id stays its own)
         return found[1]
 
     def entry(self, plan, formation, t0_s: float) -> SharedEntry:

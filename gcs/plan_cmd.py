@@ -111,9 +111,23 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
                        "closest_drones": None if approach is None else [i + 1 for i in approach.pair],
                        "closest_t_s": None if approach is None else approach.t_s},
         "actuators": _actuators(plan, demand),
+        "controller": {"rate_hz": plan.controller.rate_hz,
+                       "thrust_adaptation_rate_1_s": plan.controller.thrust_adaptation_rate_1_s,
+                       "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind)},
         "flight": flight.summary() if flight is not None else {"flown": False},
         "ok": flight is not None,
     }
+
+
+def _drag_term(plan: Plan) -> str:
+    """What the controllers make of the air: the drag the RFL cancels, or none."""
+    rho = plan.controller_air_density_kg_m3(plan.wind)
+    if rho == 0.0:
+        return "none (" + ("[controller] air_density_kg_m3 = 0" if plan.wind is not None else "flown in no air") + \
+            ": the paper's law)"
+    af = plan.airframe
+    return (f"rho = {rho:g} kg/m^3, C_d A = {af.drag_coefficient * af.frontal_area_m2:g} m^2: the RFL cancels the "
+            "body's drag 1/2 rho C_d A |v| v")
 
 
 def _complex(z: complex) -> str:
@@ -133,6 +147,7 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
     facts.add_row("switching", f"{len(design.topology_names)} topologies, every {plan.schedule.period_s:g} s")
     facts.add_row("lambda_R", f"{design.lambda_R:.6g} (min Re of eig(L+G) over the topologies)")
     facts.add_row("c", f"{design.c:.6g} = {design.weights.coupling_margin:g} / (2 lambda_R), (91)")
+    facts.add_row("drag term", _drag_term(plan))
     for key, value in design.stability_margins().items():
         facts.add_row(key.replace("_", " "), f"{value:.4g} (< 0: Hurwitz, (77))")
     console.print(Panel(facts, title=f"plan {escape(plan.source)}", expand=False))

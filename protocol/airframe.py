@@ -60,9 +60,10 @@ class Airframe:
     """Transport delay from a servo command to the servo angle (0.01 s in the paper)."""
     drag_coefficient: float = 1.0
     """Drag coefficient C_d of the body (dimensionless), on frontal_area_m2: the body's drag is
-    1/2 rho_air C_d A |v_rel| v_rel against its velocity relative to the air. Not in the paper; only
-    a simulated plant in wind uses it. 1.0 is a bluff body of plates and cylinders crosswise to the
-    flow (Hoerner, Fluid-Dynamic Drag, 1965: 1.0 to 1.2)."""
+    1/2 rho_air C_d A |v_rel| v_rel against its velocity relative to the air. Not in the paper: a
+    simulated plant in air feels it, and controllers flying in air cancel it (``drag_factor_kg_m``).
+    1.0 is a bluff body of plates and cylinders crosswise to the flow (Hoerner, Fluid-Dynamic Drag,
+    1965: 1.0 to 1.2)."""
     frontal_area_m2: float = 0.02
     """Area the body shows the air [m^2], the same in every direction: a 0.5 kg frame with 0.23 m
     arms, its hub (about 0.12 m x 0.06 m seen edge-on), arms and motors; the rotor discs are not
@@ -84,6 +85,11 @@ class Airframe:
             raise ParameterError("airframe inertia is not positive definite: Iyz^2 must be below Iyy*Izz")
         if self.servo_limit_rad > math.pi:
             raise ParameterError("airframe parameter servo_limit_rad must not exceed pi")
+
+    def drag_factor_kg_m(self, air_density_kg_m3: float) -> float:
+        """1/2 rho_air C_d A [kg/m]: the body's drag is this times |v_rel| v_rel [N] in air of the
+        given density [kg/m^3] (0: no air, no drag)."""
+        return 0.5 * air_density_kg_m3 * self.drag_coefficient * self.frontal_area_m2
 
     @property
     def max_omega_sq(self) -> float:

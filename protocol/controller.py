@@ -16,6 +16,9 @@ What this adds to the paper's law, and why (see docs/control-design.md):
 * Observer. (73) is discretised with a zero-order hold on v and a first-order hold on y, updated
   when y arrives, so the estimate used at tick k has seen y_k. With ``Design.F_aug`` it also
   estimates an acceleration disturbance on x_r rows 1-6, which the command cancels.
+* Drag. In air (``air_density_kg_m3`` > 0) the RFL also cancels the body's drag in still air,
+  -(k/m) |v| v at the estimated velocity (``rfl`` module docstring); the observer's disturbance is
+  then the wind's share alone.
 * Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
   translational disturbance along the commanded specific thrust (the idea of PX4's hover-thrust
   estimator) and divided out of u, so a heavier drone or a weaker propeller is flown as designed.
@@ -26,6 +29,7 @@ Everything here is arrays in, arrays out; time and measurements come in as argum
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -34,6 +38,10 @@ from .design import Design
 from . import kernels
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL
+
+if TYPE_CHECKING:
+    from .plan import Plan
+    from .wind import Wind
 
 
 def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -89,8 +97,21 @@ class FormationController:
         z = np.zeros((1, 12))
         protocol_rows(design, z, z, np.zeros(1), np.ones(1), z, design.gamma(z, z))
 
+    @classmethod
+    def for_plan(cls, plan: "Plan", n_agents: int, rate_hz: float, wind: "Wind | None",
+                 delay_s: float | None = None) -> "FormationController":
+        """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
+        thrust adaptation and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
+        way a simulation and the companions make theirs."""
+        return cls(plan.design, n_agents, rate_hz, delay_s,
+                   thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
+                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind))
+
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
-                 thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0)) -> None:
+                 thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
+                 air_density_kg_m3: float = 0.0) -> None:
+        """air_density_kg_m3: the air the drones fly in, as the controller assumes it [kg/m^3], for
+        the drag the RFL cancels; 0 is no air (the paper's law, to the bit)."""
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"controller rate must be a positive number of hertz, got {rate_hz!r}")
         self.design = design
@@ -103,6 +124,11 @@ class FormationController:
         self.lead_ticks = int(round(delay / self.dt_s))
         self.lead_s = self.lead_ticks * self.dt_s
         """Estimates and protocol inputs refer to t + lead_s (the delay, in whole ticks)."""
+        if not (np.isfinite(air_density_kg_m3) and air_density_kg_m3 >= 0):
+            raise ValueError(f"air density must be a non-negative number of kg/m^3, got {air_density_kg_m3!r}")
+        self.air_density_kg_m3 = float(air_density_kg_m3)
+        self.drag_1_m = self.rfl.drag_per_mass_1_m(self.air_density_kg_m3)
+        """k / m of the drag the RFL cancels [1/m] (0: none)."""
         self.adaptation_rate = float(thrust_adaptation_rate_1_s)
         self.kappa_limits = thrust_scale_limits
 
@@ -147,7 +173,7 @@ class FormationController:
         self._z_pred[rows] = self.z[rows]
         self._y_prev[rows] = x[:, 6:12]
         self._fresh[rows] = True  # the first measurement after a reset is taken, not integrated
-        hold = self.rfl.control(x, np.zeros((rows.size, 6)))
+        hold = self.rfl.control(x, np.zeros((rows.size, 6)), self.air_density_kg_m3)
         omega, alpha = actuator_inverse(hold)
         self.initial_actuation.omega_rad_s[rows] = omega
         self.initial_actuation.alpha_rad[rows] = alpha
@@ -203,8 +229,8 @@ class FormationController:
         omega_now = np.empty((rows.size, 3))
         r = self.rfl
         kernels.actuate(rows, self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
-                        self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, MAX_PITCH_RAD,
-                        self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], self._v_pipe,
+                        self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, self.drag_1_m,
+                        MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], self._v_pipe,
                         self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
         return Actuation(omega_now, alpha)
 

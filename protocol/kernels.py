@@ -25,9 +25,18 @@ def _matvec_add(M, x, out, scale=1.0):
         out[r] += scale * acc
 
 
+@njit(inline="always")
+def drag_share(xr, drag):
+    """What the thrust must add to the specific force, earth frame [m/s^2], to cancel the body's drag
+    in still air, -drag |lambda_dot| lambda_dot, at x_r (lambda_dot = xr[0:3]); drag = k / m [1/m]."""
+    s = drag * math.sqrt(xr[0] * xr[0] + xr[1] * xr[1] + xr[2] * xr[2])
+    return s * xr[0], s * xr[1], s * xr[2]
+
+
 @njit()
-def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
-    """(49) in x_r coordinates for one row (see RFL.control_xr): writes u (6) and y_ddot (6)."""
+def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
+    """(49) in x_r coordinates for one row (see RFL.control_xr): writes u (6) and y_ddot (6). With
+    drag = k / m > 0 [1/m] the law also cancels the drag of still air (``rfl`` module docstring)."""
     for k in range(6):
         acc = 0.0
         for c in range(12):
@@ -62,6 +71,9 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
     w[5] = -sf * a1 + cf * ct * a2 + Ii[2, 0] * c0 + Ii[2, 1] * c1 + Ii[2, 2] * c2
     # body specific force = R^T (lambda_ddot + g e_z)
     fx, fy, fz = yddot[3], yddot[4], yddot[5] + g
+    if drag > 0.0:  # (no air: not a single operation more, the paper's law to the bit)
+        dx, dy, dz = drag_share(xr, drag)
+        fx, fy, fz = fx + dx, fy + dy, fz + dz
     w[0] = ct * cp * fx + ct * sp * fy - st * fz
     w[1] = (sf * st * cp - cf * sp) * fx + (sf * st * sp + cf * cp) * fy + sf * ct * fz
     w[2] = (cf * st * cp + sf * sp) * fx + (cf * st * sp - sf * cp) * fy + cf * ct * fz
@@ -70,9 +82,9 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
 
 
 @njit()
-def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, max_pitch, u, yddot):
+def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
     for i in range(xr.shape[0]):
-        rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, max_pitch, u[i], yddot[i])
+        rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, drag, max_pitch, u[i], yddot[i])
 
 
 @njit()
@@ -136,14 +148,15 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 
 
 @njit()
-def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, max_pitch,
+def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, drag, max_pitch,
             kappa, adapt_k, k_lo, k_hi, v_pipe, motor_pipe, v_applied, v_out, omega, alpha, omega_now):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
-    predict half a period on, RFL, adapt and apply the thrust scale kappa, actuator inverse, and
-    commit the result to the pipes (``push``). Writes v_out (the v committed), omega (the rotor
-    speeds computed), alpha and omega_now (the commands to send now), indexed like v_in; updates
-    kappa in place. z is the observer state: with adaptation (adapt_k > 0, which needs a
-    disturbance estimate) columns 12-14 are the translational disturbance."""
+    predict half a period on, RFL (with the drag of still air, drag = k / m [1/m], 0 in no air),
+    adapt and apply the thrust scale kappa, actuator inverse, and commit the result to the pipes
+    (``push``). Writes v_out (the v committed), omega (the rotor speeds computed), alpha and
+    omega_now (the commands to send now), indexed like v_in; updates kappa in place. z is the
+    observer state: with adaptation (adapt_k > 0, which needs a disturbance estimate) columns 12-14
+    are the translational disturbance."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)
     u = np.empty(6)
@@ -156,9 +169,12 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
         zm[:] = 0.0
         _matvec_add(half_Phi, z_pred[i], zm)
         _matvec_add(half_G, v_out[k], zm)
-        rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, max_pitch, u, yd)
+        rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yd)
         if adapt_k > 0.0:
-            a0, a1, a2 = yd[3], yd[4], yd[5] + g
+            a0, a1, a2 = yd[3], yd[4], yd[5] + g  # the commanded specific thrust
+            if drag > 0.0:
+                dx, dy, dz = drag_share(zm, drag)
+                a0, a1, a2 = a0 + dx, a1 + dy, a2 + dz
             norm2 = a0 * a0 + a1 * a1 + a2 * a2
             if norm2 > 1.0:  # below ~1 m/s^2 of commanded thrust the ratio says little
                 step = adapt_k * (z[i, 12] * a0 + z[i, 13] * a1 + z[i, 14] * a2) / norm2

@@ -17,7 +17,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       name, pinned = [agents], edges = [[from, to], ...] (agents from 1, 0 = leader)
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
-    [controller]      rate_hz, thrust_adaptation_rate_1_s
+    [controller]      rate_hz, thrust_adaptation_rate_1_s, air_density_kg_m3 (the drag the controllers cancel)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's
 """
@@ -102,6 +102,11 @@ class ControllerSettings:
     """Control loop rate."""
     thrust_adaptation_rate_1_s: float = 3.0
     """Adaptation rate of the thrust-effectiveness estimate (0 switches it off)."""
+    air_density_kg_m3: float | None = None
+    """Density of the air the controllers assume [kg/m^3]: the RFL cancels the body's drag
+    1/2 rho C_d A |v| v with it (C_d and A the airframe's). None: the density of the air the plan is
+    flown in (ISA sea level, 1.225, unless [wind] says otherwise), and 0 (no drag term: the paper's
+    law) when it is flown in no air (``Plan.controller_air_density_kg_m3``)."""
 
 
 @dataclass(frozen=True)
@@ -154,6 +159,17 @@ class Plan:
     def settled_from_s(self) -> float:
         """Start of the settled window over which a flight is judged: the entry's end plus settle_s."""
         return self.entry_end_s + self.check_settings.settle_s
+
+    def controller_air_density_kg_m3(self, wind: Wind | None) -> float:
+        """The air density [kg/m^3] with which the controllers cancel the body's drag when the plan
+        is flown in ``wind`` (a simulation's: the plan's [wind] or the one given on the command line;
+        a companion's: the plan's [wind]); None is no air at all. [controller] air_density_kg_m3
+        when the plan gives it; else the wind's air density in air (still air included; ISA sea
+        level unless [wind] says otherwise) and 0 in no air, where the controllers fly the paper's
+        law to the bit."""
+        if self.controller.air_density_kg_m3 is not None:
+            return self.controller.air_density_kg_m3
+        return 0.0 if wind is None else wind.air_density_kg_m3
 
     def leader_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """x0(t) and its derivative, (12,) each."""
@@ -523,7 +539,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     weights = _weights(_Fields(source, "design", top.get("design")))
     cf = _Fields(source, "controller", top.get("controller"))
     ctrl = ControllerSettings(cf.number("rate_hz", 200.0, positive=True),
-                              cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True))
+                              cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True),
+                              cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None)
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),
@@ -570,4 +587,8 @@ def in_flight_change_problem(flying: dict, new: dict) -> str | None:
     for key in sorted((set(flying) | set(new)) - IN_FLIGHT_CHANGEABLE):
         if flying.get(key) != new.get(key):
             return f"in flight a new plan may change only its formation, not {key}; land first"
+    controller = flying.get("controller")
+    if ("wind" in flying) != ("wind" in new) and not (isinstance(controller, dict) and "air_density_kg_m3" in controller):
+        return ("in flight a new plan may not add or remove [wind]: it tells the controllers whether they fly in air "
+                "(or give [controller] air_density_kg_m3); land first")
     return None

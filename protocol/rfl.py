@@ -10,6 +10,15 @@ linearization of (24)-(27) at hover. x_r = [lambda_dot (3), eta_dot (3), eta (3)
 
 U (55) and L (53) are computed here from their definitions: U by differentiating phi_c at the origin
 and L by complex-step differentiation of alpha_c, which is exact to rounding.
+
+Drag (not in the paper). In air of density rho the body also feels F = -k |v_rel| v_rel,
+k = 1/2 rho C_d A (``dynamics.drag``), a force on the centre of mass: it adds
+-(k/m) |lambda_dot| lambda_dot to lambda_ddot in still air, and nothing to eta_ddot. That is a known
+function of the state, so the law takes it into b(x) (``air_density_kg_m3``) and cancels it with the
+rest of the nonlinearity: the drone in still air then obeys (58) exactly, and what is left for the
+disturbance observer is the wind's share, -(k/m) (|v - w| (v - w) - |v| v). The linear model does not
+change: d(|v| v)/dv = |v| I + v v^T / |v| vanishes at v = 0, so the Jacobian at hover, A_r, and with
+it L, are the paper's (complex steps would not see |v| anyway: it is not analytic).
 """
 
 from __future__ import annotations
@@ -65,11 +74,12 @@ def decoupling_matrix(x: np.ndarray, af: Airframe) -> np.ndarray:
     return np.concatenate([top, bottom], axis=-2)
 
 
-def drift_output_acceleration(x: np.ndarray, af: Airframe) -> np.ndarray:
+def drift_output_acceleration(x: np.ndarray, af: Airframe, air_density_kg_m3: float = 0.0) -> np.ndarray:
     """b(x) = L_f^2 H(x): y_ddot with zero input, shape (..., 6).
 
     eta_ddot = Psi_dot omega + Psi I^-1 (-omega x I omega); lambda_ddot = [0, 0, -g] because
-    d/dt (R v_b) = R (v_dot + omega x v) and the Coriolis terms cancel.
+    d/dt (R v_b) = R (v_dot + omega x v) and the Coriolis terms cancel. In still air of density
+    air_density_kg_m3 [kg/m^3] lambda_ddot also has the drag -(k/m) |R v_b| R v_b (module docstring).
     """
     eta, w = x[..., EULER], x[..., BODY_RATE]
     I = inertia_matrix(af)
@@ -80,6 +90,10 @@ def drift_output_acceleration(x: np.ndarray, af: Airframe) -> np.ndarray:
     eta_ddot = (Psi_dot @ w[..., None])[..., 0] + (Psi @ gyro[..., None])[..., 0]
     lam_ddot = np.zeros(x.shape[:-1] + (3,), dtype=eta_ddot.dtype)
     lam_ddot[..., 2] = -af.gravity_m_s2
+    if air_density_kg_m3 > 0.0:
+        vel_e = (rotation_body_to_earth(eta) @ x[..., BODY_VEL, None])[..., 0]
+        speed = np.sqrt((vel_e * vel_e).sum(axis=-1, keepdims=True))
+        lam_ddot = lam_ddot - af.drag_factor_kg_m(air_density_kg_m3) / af.mass_kg * speed * vel_e
     return np.concatenate([eta_ddot, lam_ddot], axis=-1)
 
 
@@ -160,6 +174,11 @@ class RFL:
         v_b = (np.swapaxes(R, -1, -2) @ x_r[..., XR_VEL, None])[..., 0]
         return np.concatenate([v_b, omega, eta, x_r[..., XR_POS]], axis=-1)
 
+    def drag_per_mass_1_m(self, air_density_kg_m3: float) -> float:
+        """k / m = 1/2 rho C_d A / m [1/m]: the body's drag acceleration is this times |v| v in still
+        air of density air_density_kg_m3 [kg/m^3]."""
+        return self.airframe.drag_factor_kg_m(air_density_kg_m3) / self.airframe.mass_kg
+
     def alpha(self, x: np.ndarray) -> np.ndarray:
         """(50): alpha(x) = alpha_c(x) + beta_c(x) L phi_r(x)."""
         return self.control(x, np.zeros(x.shape[:-1] + (6,)))
@@ -168,24 +187,28 @@ class RFL:
         """(51): beta(x) = M(x)^-1 M(0), shape (..., 6, 6)."""
         return np.linalg.solve(decoupling_matrix(x, self.airframe), np.broadcast_to(self.M0, x.shape[:-1] + (6, 6)))
 
-    def control(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(49): u = alpha(x) + beta(x) v = M(x)^-1 (-b(x) + L phi_r(x) + M(0) v)."""
-        target = -drift_output_acceleration(x, self.airframe) + self.phi_r(x) @ self.L.T + v @ self.M0.T
+    def control(self, x: np.ndarray, v: np.ndarray, air_density_kg_m3: float = 0.0) -> np.ndarray:
+        """(49): u = alpha(x) + beta(x) v = M(x)^-1 (-b(x) + L phi_r(x) + M(0) v), with the drag of
+        still air of density air_density_kg_m3 [kg/m^3] in b(x) (0: the paper's law, no air)."""
+        b = drift_output_acceleration(x, self.airframe, air_density_kg_m3)
+        target = -b + self.phi_r(x) @ self.L.T + v @ self.M0.T
         return np.linalg.solve(decoupling_matrix(x, self.airframe), target[..., None])[..., 0]
 
-    def control_xr(self, x_r: np.ndarray, v: np.ndarray, max_pitch_rad: float = MAX_PITCH_RAD) -> tuple[np.ndarray, np.ndarray]:
+    def control_xr(self, x_r: np.ndarray, v: np.ndarray, max_pitch_rad: float = MAX_PITCH_RAD,
+                   air_density_kg_m3: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(49) written in x_r coordinates, without a linear solve: returns u (..., 6) and the
-        commanded output acceleration y_ddot = L x_r + M(0) v (..., 6) (its rows 4-6 plus g e_z are
-        the commanded specific thrust in the earth frame).
+        commanded output acceleration y_ddot = L x_r + M(0) v (..., 6) (its rows 4-6 plus g e_z,
+        plus (k/m) |lambda_dot| lambda_dot in air, are the commanded specific thrust in the earth
+        frame).
 
         M(x) = blockdiag(Psi, R_b2e) G with G constant, so M^-1 t = G^-1 [W t_eta; R^T t_lambda],
-        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v)`` (tested). Compiled
-        (``kernels.rfl_xr_row``): it runs on every tick of every drone."""
+        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v, air_density_kg_m3)``
+        (tested). Compiled (``kernels.rfl_xr_row``): it runs on every tick of every drone."""
         xr2 = np.ascontiguousarray(np.asarray(x_r, dtype=float).reshape(-1, 12))
         v2 = np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float), x_r.shape[:-1] + (6,)).reshape(-1, 6))
         u = np.empty((xr2.shape[0], 6))
         yddot = np.empty((xr2.shape[0], 6))
         kernels.rfl_xr(xr2, v2, self.L, self.M0, self.inertia, self.inertia_inv, self.G_inv,
-                       self.airframe.gravity_m_s2, max_pitch_rad, u, yddot)
+                       self.airframe.gravity_m_s2, self.drag_per_mass_1_m(air_density_kg_m3), max_pitch_rad, u, yddot)
         shape = x_r.shape[:-1] + (6,)
         return u.reshape(shape), yddot.reshape(shape)

@@ -132,9 +132,9 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     rng = np.random.default_rng(config.seed + 1)
 
     af_plant = plant_airframe(plan, config)
-    plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz, wind=flown_wind(plan, config), wind_seed=config.seed)
-    ctrl = FormationController(design, n, rate, delay_s=config.controller_delay_s,
-                               thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
+    wind = flown_wind(plan, config)
+    plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz, wind=wind, wind_seed=config.seed)
+    ctrl = FormationController.for_plan(plan, n, rate, wind, delay_s=config.controller_delay_s)
     plant.reset(start)
     ctrl.reset(plant.observe().paper_state())
     plant.reset(start, servo_rad=ctrl.initial_actuation.alpha_rad)

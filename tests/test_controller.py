@@ -65,7 +65,7 @@ class NumpyController:
     period on, (49) by linear solve (``RFL.control``), the thrust adaptation and the actuator
     inverse of Remark 1."""
 
-    def __init__(self, design, n, rate_hz, adaptation_rate_1_s):
+    def __init__(self, design, n, rate_hz, adaptation_rate_1_s, air_density_kg_m3=0.0):
         A, B, C, F = design.observer_model()
         T = 1.0 / rate_hz
         self.Phi, self.Gv, self.Gy0, self.Gy1 = _zoh_foh(A - design.c * F @ C, B, design.c * F, T)
@@ -76,12 +76,15 @@ class NumpyController:
         self.half_Phi, self.half_G = _zoh(A, B, 0.5 * T)
         self.E_inv = np.linalg.inv(design.B_r[0:6])
         self.rfl, self.n, self.adapt_k = design.rfl, n, adaptation_rate_1_s * T
+        self.air = air_density_kg_m3
+        af = design.rfl.airframe
+        self.k_m = 0.5 * air_density_kg_m3 * af.drag_coefficient * af.frontal_area_m2 / af.mass_kg
 
     def reset(self, x):
         self.z = np.hstack([self.rfl.phi_r(x), np.zeros((self.n, 6))])
         self.y_prev, self.fresh, self.kappa = x[:, 6:12].copy(), True, np.ones(self.n)
         self.v_pipe = [np.zeros((self.n, 6))] * self.lead
-        self.motor_pipe = [model.actuator_inverse(self.rfl.control(x, np.zeros((self.n, 6))))[0]] * self.lead
+        self.motor_pipe = [model.actuator_inverse(self.rfl.control(x, np.zeros((self.n, 6)), self.air))[0]] * self.lead
         self.v_applied = np.zeros((self.n, 6))
 
     def observe(self, y):
@@ -94,8 +97,9 @@ class NumpyController:
     def actuate(self, v):
         v = v - self.z_pred[:, 12:18] @ self.E_inv.T
         zm = self.z_pred @ self.half_Phi.T + v @ self.half_G.T
-        u = self.rfl.control(self.rfl.phi_r_inverse(zm[:, :12]), v)
+        u = self.rfl.control(self.rfl.phi_r_inverse(zm[:, :12]), v, self.air)
         thrust = zm[:, :12] @ self.rfl.L[3:6].T + v @ self.rfl.M0[3:6].T + [0.0, 0.0, self.rfl.airframe.gravity_m_s2]
+        thrust += self.k_m * np.linalg.norm(zm[:, 0:3], axis=1, keepdims=True) * zm[:, 0:3]  # (the drag's share)
         n2 = (thrust**2).sum(axis=1)
         step = np.where(n2 > 1.0, self.adapt_k * (self.z[:, 12:15] * thrust).sum(axis=1) / n2, 0.0)
         self.kappa = np.clip(self.kappa * (1.0 + step), 0.3, 3.0)
@@ -105,15 +109,21 @@ class NumpyController:
         return omega_now, alpha
 
 
-def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng):
+@pytest.mark.parametrize("air_density_kg_m3", [0.0, 1.225], ids=["no-air", "sea-level-air"])
+def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng, air_density_kg_m3):
     """Six agents at once (compiled kernels) against the numpy reference above, over ticks with noisy
-    measurements and arbitrary protocol inputs; and agent 1 alone gives agent 1's commands."""
+    measurements and arbitrary protocol inputs; and agent 1 alone gives agent 1's commands. In no air
+    and in air (the drag of still air cancelled, drones moving at up to 14 m/s)."""
     d = paper_plan.design
     n = 6
     x = np.zeros((n, 12))
     x[:, 9:12] = rng.uniform(-3, 3, (n, 3))
     x[:, 6:9] = rng.uniform(-0.3, 0.3, (n, 3))
-    batch, single, ref = FormationController(d, n), FormationController(d, 1), NumpyController(d, n, 200.0, 3.0)
+    if air_density_kg_m3:
+        x[:, 0:3] = rng.uniform(-8, 8, (n, 3))
+    air = {"air_density_kg_m3": air_density_kg_m3}
+    batch, single, ref = FormationController(d, n, **air), FormationController(d, 1, **air), \
+        NumpyController(d, n, 200.0, 3.0, **air)
     for c in (batch, ref):
         c.reset(x)
     single.reset(x[:1])

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from triswarm.gcs.scenarios import builtin_names, load_plan
-from triswarm.protocol.plan import PlanError, plan_from_dict
+from triswarm.protocol.plan import PlanError, in_flight_change_problem, plan_from_dict
+from triswarm.protocol.wind import Wind
 
 
 def test_paper_plan_is_the_papers_case_study(paper_plan):
@@ -56,6 +57,7 @@ def spec_with(paper_spec, path, value):
     (("topology", "switch_period_s"), 0.0, r"topology.switch_period_s must be positive"),
     (("entry", "blend_s"), -1.0, r"entry.blend_s must be positive"),
     (("controller", "rate_hz"), float("inf"), r"controller.rate_hz must be a finite number"),
+    (("controller", "air_density_kg_m3"), -1.2, r"controller.air_density_kg_m3 must not be negative, got -1.2"),
     (("wind", "speed_m_s"), -4.0, r"wind.speed_m_s must not be negative, got -4.0"),
     (("wind", "turbulence"), "gale", r"wind.turbulence must be none, light, moderate, severe or sigma_w in m/s"),
     (("wind", "gusts"), [{"speed_m_s": 3.0, "duration_s": 2.0}], r"wind.gusts\[0\].start_s is required"),
@@ -191,3 +193,26 @@ def test_plan_length_and_settled_window(paper_spec):
         plan_from_dict(spec_with(paper_spec, ("duration_s",), 20.0), "p.toml")
     longer = plan_from_dict(spec_with(paper_spec, ("entry", "blend_s"), 40.0), "p.toml")
     assert longer.settled_from_s == 53.0 and longer.duration_s == 73.0
+
+
+def test_the_controllers_know_the_air_the_plan_is_flown_in(paper_spec):
+    """No air (no [wind], none given): no drag term, the paper's law. In air (the plan's [wind], or a
+    simulation's): ISA sea level, or the plan's [controller] air_density_kg_m3 wherever it flies."""
+    plain = plan_from_dict(paper_spec)
+    assert plain.controller_air_density_kg_m3(None) == 0.0
+    assert plain.controller_air_density_kg_m3(Wind()) == 1.225
+    windy = plan_from_dict(spec_with(paper_spec, ("wind", "speed_m_s"), 3.0))
+    assert windy.controller_air_density_kg_m3(windy.wind) == 1.225
+    high = plan_from_dict(spec_with(paper_spec, ("controller", "air_density_kg_m3"), 1.0))
+    assert high.controller_air_density_kg_m3(None) == high.controller_air_density_kg_m3(Wind()) == 1.0
+    off = plan_from_dict(spec_with(paper_spec, ("controller", "air_density_kg_m3"), 0))
+    assert off.controller_air_density_kg_m3(Wind(speed_m_s=5.0)) == 0.0
+
+
+def test_in_flight_a_plan_may_not_say_otherwise_about_the_air(paper_spec):
+    windy = spec_with(paper_spec, ("wind", "speed_m_s"), 3.0)
+    assert in_flight_change_problem(windy, spec_with(paper_spec, ("wind", "speed_m_s"), 6.0)) is None
+    assert "may not add or remove [wind]" in in_flight_change_problem(paper_spec, windy)
+    assert "may not add or remove [wind]" in in_flight_change_problem(windy, paper_spec)
+    fixed = spec_with(paper_spec, ("controller", "air_density_kg_m3"), 1.225)
+    assert in_flight_change_problem(fixed, spec_with(fixed, ("wind", "speed_m_s"), 3.0)) is None

@@ -96,3 +96,66 @@ def test_phi_r_inverse_and_solve_free_law(rfl, rng):
     u_xr, y_ddot = rfl.control_xr(rfl.phi_r(x), v)
     assert np.allclose(u_xr, rfl.control(x, v), rtol=1e-10, atol=1e-6)
     assert np.allclose(y_ddot, rfl.phi_r(x) @ rfl.L.T + v @ rfl.M0.T)
+
+
+SEA_LEVEL = 1.225
+
+
+def earth_acceleration(x, xdot):
+    """lambda_ddot = d/dt (R v_b) = R (v_b_dot + omega x v_b), from a state and its derivative (28)."""
+    R = model.rotation_body_to_earth(x[:, 6:9])
+    return (R @ (xdot[:, 0:3] + np.cross(x[:, 3:6], x[:, 0:3]))[..., None])[..., 0]
+
+
+def test_rfl_in_still_air_cancels_the_plants_drag_exactly(rfl, airframe, rng):
+    """The same state and input through the plant's model in still air: its acceleration is the one
+    the law commands, y_ddot = L x_r + M(0) v, in closed form (lambda_ddot = R (v_b_dot + omega x v_b))
+    and, for eta too, by finite differences along the true dynamics. Without the drag term the same
+    flight is off by exactly the drag, -(k/m) |lambda_dot| lambda_dot (k = 1/2 rho C_d A)."""
+    x = random_states(rng, 40, max_pitch=1.2)
+    x[:, 0:3] = rng.uniform(-15, 15, (40, 3))  # up to 26 m/s through the air
+    v = rng.normal(0, 2e4, (40, 6))
+    still = np.zeros(3)
+    u, y_ddot = rfl.control_xr(rfl.phi_r(x), v, air_density_kg_m3=SEA_LEVEL)
+    xdot = model.state_derivative(x, u, airframe, wind_e_m_s=still, air_density_kg_m3=SEA_LEVEL)
+    scale = np.abs(y_ddot).max() + 1.0
+    assert np.abs(earth_acceleration(x, xdot) - y_ddot[:, 3:6]).max() < 1e-12 * scale
+    h = 1e-6
+    lhs = (rfl.phi_r(x + h * xdot) - rfl.phi_r(x - h * xdot)) / (2 * h)
+    rhs = rfl.phi_r(x) @ rfl.A_r.T + v @ rfl.B_r.T
+    assert np.all(np.abs(lhs - rhs) <= 1e-6 * (np.abs(rhs).max(axis=1, keepdims=True) + 1.0))
+    # the drag term switched off: the plant's acceleration misses the commanded one by the drag
+    u_paper, _ = rfl.control_xr(rfl.phi_r(x), v)
+    xdot_paper = model.state_derivative(x, u_paper, airframe, wind_e_m_s=still, air_density_kg_m3=SEA_LEVEL)
+    vel_e = rfl.phi_r(x)[:, 0:3]
+    k_m = 0.5 * SEA_LEVEL * airframe.drag_coefficient * airframe.frontal_area_m2 / airframe.mass_kg
+    drag = -k_m * np.linalg.norm(vel_e, axis=1, keepdims=True) * vel_e
+    assert np.abs(drag).max() > 5.0  # [m/s^2] (it is not small)
+    assert np.allclose(earth_acceleration(x, xdot_paper) - y_ddot[:, 3:6], drag, rtol=1e-10, atol=1e-10 * scale)
+
+
+def test_law_in_air_by_linear_solve_equals_the_compiled_one_and_no_air_is_the_papers(rfl, rng):
+    x = random_states(rng, 50, max_pitch=1.2)
+    v = rng.normal(0, 1e4, (50, 6))
+    u_xr, _ = rfl.control_xr(rfl.phi_r(x), v, air_density_kg_m3=SEA_LEVEL)
+    assert np.allclose(u_xr, rfl.control(x, v, air_density_kg_m3=SEA_LEVEL), rtol=1e-10, atol=1e-6)
+    assert not np.allclose(u_xr, rfl.control(x, v), rtol=1e-6)
+    assert np.array_equal(rfl.control_xr(rfl.phi_r(x), v, air_density_kg_m3=0.0)[0], rfl.control_xr(rfl.phi_r(x), v)[0])
+
+
+def test_still_air_leaves_the_linearization_at_hover_as_it_is(rfl, airframe):
+    """The drag's Jacobian, -(k/m) (|v| I + v v^T / |v|), vanishes at v = 0: the Jacobian of the
+    model in still air at hover is A_r, and the law at hover is the trim, so A_r and L stay the
+    paper's. Away from hover it does not vanish (the aerodynamic damping the law cancels)."""
+    u0 = model.hover_input(airframe)
+    still = np.zeros(3)
+    A = jacobian(lambda x: model.state_derivative(x, u0, airframe, wind_e_m_s=still, air_density_kg_m3=SEA_LEVEL),
+                 np.zeros(12))
+    assert np.allclose(rfl.A_r, A, atol=1e-7)  # (central differences of |v| v leave h k/m = 2e-8)
+    assert np.allclose(rfl.control(np.zeros(12), np.zeros(6), air_density_kg_m3=SEA_LEVEL), model.hover_input(airframe),
+                       rtol=1e-12)
+    x10 = np.zeros(12)
+    x10[0] = 10.0
+    A10 = jacobian(lambda x: model.state_derivative(x, u0, airframe, wind_e_m_s=still, air_density_kg_m3=SEA_LEVEL), x10)
+    k_m = 0.5 * SEA_LEVEL * airframe.drag_coefficient * airframe.frontal_area_m2 / airframe.mass_kg
+    assert A10[0, 0] == pytest.approx(-2 * k_m * 10.0, rel=1e-6) and A10[1, 1] == pytest.approx(-k_m * 10.0, rel=1e-6)

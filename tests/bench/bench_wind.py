@@ -8,6 +8,8 @@ the plan for its full length with the in-process simulation at steady wind speed
 settled window, as `triswarm sim` judges them, in a markdown table with the command line of each
 row; then the speed where the paper's bounds (0.10 m, 0.02 rad) and the wider ones (0.25 m, 0.05 rad)
 break, refined by bisection to --resolution (assuming the error grows with the speed).
+Each scenario is flown with the controllers' drag term on (the default: the RFL cancels the drag of
+still air at the plan's air density) and off ([controller] air_density_kg_m3 = 0, the paper's law).
 No sensor noise, no model mismatch, seed 0: the table is deterministic."""
 
 from __future__ import annotations
@@ -58,6 +60,13 @@ def fly(plan, wind: Wind | None, seed: int) -> tuple[float, float, float | None]
     return perf.worst_position_m, perf.worst_attitude_rad, r.diverged_at_s
 
 
+def with_drag_term(plan, on: bool):
+    """The plan with the controllers' drag term as it is (on), or off: air_density_kg_m3 = 0."""
+    if on:
+        return plan
+    return dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, air_density_kg_m3=0.0))
+
+
 def within(result, bound: str) -> bool:
     pos, att, diverged = result
     return diverged is None and pos <= BOUNDS[bound][0] and att <= BOUNDS[bound][1]
@@ -72,6 +81,7 @@ def main() -> None:
     ap.add_argument("--gust", default="6,2,40", help="the gust case's SPEED_M_S,DURATION_S,START_S")
     ap.add_argument("--resolution-m-s", type=float, default=0.5, help="bisection resolution of the break speeds")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drag-term", default="on,off", help="comma-separated, of: on, off (the controllers' drag term)")
     args = ap.parse_args()
     threads = {k: os.environ.get(k, "unset") for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")}
     print(f"python {platform.python_version()} on {platform.machine()}, {os.cpu_count()} cpus, threads {threads}")
@@ -79,10 +89,16 @@ def main() -> None:
     cases = [Case("steady"), Case("moderate turbulence", turbulence="moderate"), Case("gust", gust=gust)]
     wall0 = time.perf_counter()
     summary = []
-    for label in args.scenarios.split(","):
-        source, drones = SCENARIOS[label.strip()]
-        plan = load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones)
+    runs = [(label.strip(), term.strip()) for label in args.scenarios.split(",") for term in args.drag_term.split(",")]
+    for scenario_label, term in runs:
+        if term not in ("on", "off"):
+            raise SystemExit(f"--drag-term takes on and off, got {term!r}")
+        source, drones = SCENARIOS[scenario_label]
+        plan = with_drag_term(load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones), term == "on")
+        label = f"{scenario_label}, drag term {term}"
         scenario = f"--scenario {source}" + (f" --drones {drones}" if drones else "")
+        if term == "off":
+            scenario += " (plan with [controller] air_density_kg_m3 = 0)"
         print(f"\n### {label}: {plan.n_agents} drones, settled window from {plan.settled_from_s:g} s to "
               f"{plan.duration_s:g} s\n")
         print("| wind [m/s] | turbulence | gust | worst position [m] | worst attitude [rad] | command |")
