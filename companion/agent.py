@@ -350,7 +350,8 @@ class Agent:
         report = self.health.report(ages)
         silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
-                      counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent)
+                      counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
+                      loop_turns=getattr(self.host.loop, "turns", None))  # (the process's: ``host.CountingLoop``)
         return report
 
     # -- faults -------------------------------------------------------------------------------------
