@@ -14,6 +14,14 @@ controller of its plan's design, and the control loop (``loop.ControlLoop``) tha
 Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time, and
 every wait and timeout of the mission runs on that clock (``clock.py``), so the same code flies on a
 simulator's clock in lockstep.
+
+A dead flight controller's clock stops with it, so a lost flight controller is told on the wall
+clock: nothing heard from it for FC_SILENT_S (``watch_fc``, once a second). A clock that broke (its
+boot time back by REBOOT_JUMP_US or more: a reboot; or ahead of the wall clock by CLOCK_JUMP_US) is
+told at the sample that shows it (``clock_broke``, before the sample is flown). Either way the agent
+is LOST: it commands nothing and says so; once the flight controller is heard again it is set up as
+a new one (its parameters, streams and clock) and the flight resumes as after a restart
+(``take_fc_back``).
 """
 
 from __future__ import annotations
@@ -33,16 +41,24 @@ from triswarm.protocol.formation import RelativeTo
 from triswarm.protocol.mavlink import mavlink
 
 from .autopilot import Autopilot
+from .clock import OFFSET_STEP_US
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
 from .ground_station import GroundStation, Params
 from .health import LoopHealth
 from .plan_server import PlanServer
 from .plans import Plans
 from .state import StateStore, read_signing_key
+from .telemetry import REBOOT_JUMP_US
 
 log = logging.getLogger("triswarm.companion")
 
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
+FC_SILENT_S = 3.0
+"""Nothing from the flight controller for this long [s, wall clock]: it is lost. (It sends a heartbeat
+a second at least; a simulator in lockstep too while its clock stands.)"""
+CLOCK_JUMP_US = REBOOT_JUMP_US
+"""A sample whose boot time ran this much further [us] than the wall clock since the one before:
+the flight controller's clock jumped."""
 
 
 class StartupError(Exception):
@@ -89,7 +105,7 @@ class Agent:
             key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
         except ValueError as exc:  # (one sentence: the file and what is wrong with it)
             raise StartupError(str(exc)) from None
-        self.store = StateStore(opts.state_dir)
+        self.store = StateStore(opts.state_dir, lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING))
         self.rate_hz = opts.rate_hz
         """The control rate [Hz]: the rate asked for, or the one the attitude comes at."""
         self.params = Params(opts.rate_hz)
@@ -113,6 +129,14 @@ class Agent:
         self.in_weights: dict[str, list[tuple[int, float]]] = {}
         self.plans_on_bus: tuple[int, ...] = ()
         self.errors = 0
+        self.fc_heard_s: float | None = None
+        """When the flight controller was last heard [s, time.monotonic] (``GroundStation.from_fc``)."""
+        self.fc_lost_since: float | None = None
+        """Since when the flight controller is lost [s, time.monotonic] (None: it is not)."""
+        self._fc_back: asyncio.Task | None = None
+        self._last_boot: tuple[int, float] | None = None  # (boot ms, monotonic s) of the newest sample looked at
+        self._told_plans: set[tuple[int, object]] = set()
+        self._told_clock_step: int | None = None
 
     # -- what the rooms share ---------------------------------------------------------------------
 
@@ -150,7 +174,8 @@ class Agent:
             self.log.exception("tick failed")
 
     def heartbeat(self):
-        status = {Phase.HOLDING: mavlink.MAV_STATE_CRITICAL, Phase.FLYING: mavlink.MAV_STATE_ACTIVE}.get(
+        status = {Phase.HOLDING: mavlink.MAV_STATE_CRITICAL, Phase.LOST: mavlink.MAV_STATE_CRITICAL,
+                  Phase.FLYING: mavlink.MAV_STATE_ACTIVE}.get(
             self.flight.phase, mavlink.MAV_STATE_STANDBY)
         return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
                                                  mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PHASE_MODE[self.flight.phase],
@@ -268,7 +293,8 @@ class Agent:
             self.log.exception("mission stopped")
             self.say(f"mission stopped: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
-    async def _mission(self) -> None:
+    async def _setup_fc(self) -> None:
+        """Set the flight controller up (``Autopilot.setup``) and run at the rate it sends at."""
         af = self.plans.plan.airframe if self.plans.plan is not None else TABLE_1
         rate_hz = await self.autopilot.setup(self.rate_hz, self.heartbeat,
                                              (af.max_rotor_speed_rad_s * 30.0 / math.pi, math.degrees(af.servo_limit_rad)),
@@ -277,6 +303,9 @@ class Agent:
             self.set_rate(rate_hz)
         if self.bus is not None and self.autopilot.answers.lockstep:
             self.bus.reliable_estimates()
+
+    async def _mission(self) -> None:
+        await self._setup_fc()
         m = self.plans.mission
         if m is None:
             self.log.info(f"agent {self.id}: no plan; waiting for one")
@@ -300,6 +329,8 @@ class Agent:
 
     async def _every_second(self) -> None:
         while True:
+            self.watch_fc()
+            self.tell_others()
             hb = self.heartbeat()
             for link in (self.autopilot.link, self.gcs.link):
                 link.send(hb)
@@ -317,9 +348,98 @@ class Agent:
         table = self.bus.estimates
         ages = {j: (now - table[j].stamp_s if table[j].heard else math.inf) for j in sorted(self.listen_to)}
         report = self.health.report(ages)
+        silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
-                      counters=self.bus.counts(), t=now)
+                      counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
+                      loop_turns=getattr(self.host.loop, "turns", None))  # (the process's: ``host.CountingLoop``)
         return report
+
+    # -- faults -------------------------------------------------------------------------------------
+
+    def watch_fc(self) -> None:
+        """Once a second: a flight controller set up and silent for FC_SILENT_S is lost; a lost one
+        heard again is taken back."""
+        fc, heard = self.autopilot, self.fc_heard_s
+        if heard is None:
+            return
+        if self.fc_lost_since is None:
+            silent = time.monotonic() - heard
+            if fc.ready and silent > FC_SILENT_S:
+                self.fc_lost(f"nothing heard from it for {silent:.1f} s")
+        elif heard > self.fc_lost_since and self._fc_back is None:
+            self._fc_back = asyncio.ensure_future(self.take_fc_back())
+
+    def clock_broke(self, s) -> bool:
+        """Whether sample ``s`` shows the flight controller's clock broken (then the agent is lost,
+        and the sample is not flown): its boot time REBOOT_JUMP_US or more behind the newest (a
+        reboot), or ahead of the wall clock's time since by more than CLOCK_JUMP_US."""
+        now = time.monotonic()
+        last, self._last_boot = self._last_boot, (s.boot_us, now)
+        if last is None or self.fc_lost_since is not None:
+            return False
+        back_us = last[0] - s.boot_us
+        ahead_us = s.boot_us - last[0] - 1e6 * (now - last[1])
+        if back_us >= REBOOT_JUMP_US:
+            self.fc_lost(f"its clock went back {back_us / 1e6:.3f} s (it rebooted)")
+        elif ahead_us > CLOCK_JUMP_US:
+            self.fc_lost(f"its clock jumped {ahead_us / 1e6:.3f} s ahead of the wall clock")
+        else:
+            return False
+        return True
+
+    def fc_lost(self, reason: str) -> None:
+        """Command nothing (its own failsafe flies the vehicle) until the flight controller is back."""
+        self.fc_lost_since = time.monotonic()
+        self.flight.cancel_start()
+        text = f"flight controller lost: {reason}"
+        self.flight.set_phase(Phase.LOST, text)
+        self.say(f"{text}; commanding nothing until it is back", mavlink.MAV_SEVERITY_CRITICAL)
+
+    async def take_fc_back(self) -> None:
+        """The flight controller is heard again: it may be another one (a reboot, a simulator
+        started again), so it is set up anew (parameters, streams, clock), then the mission
+        resumes as after a restart of the companion."""
+        fc = self.autopilot
+        try:
+            self.say("flight controller heard again: setting it up anew")
+            fc.forget()
+            self._last_boot = None
+            await self._setup_fc()
+            self.fc_lost_since = None
+            m = self.plans.mission
+            if m is not None and m.phase == "flying" and m.start_unix_s is not None:
+                self.say("flight controller back: resuming the plan as after a restart")
+                self.flight.set_phase(Phase.IDLE, "")
+                await self.flight.resume()
+            elif m is not None and m.phase == "scheduled":
+                self.say("flight controller back: the plan is scheduled again")
+                self.flight.schedule()
+            else:
+                self.say("flight controller back")
+                self.flight.set_phase(Phase.IDLE, "")
+        except Exception as exc:  # (e.g. it did not answer its set-up): lost again; tried again when heard
+            self.log.exception("taking the flight controller back failed")
+            self.fc_lost_since = time.monotonic()
+            self.flight.set_phase(Phase.LOST, f"flight controller lost: {exc}")
+            self.say(f"flight controller not taken back: {exc}", mavlink.MAV_SEVERITY_ERROR)
+        finally:
+            self._fc_back = None
+
+    def tell_others(self) -> None:
+        """Once a second: say (once each) which agents fly another plan (their estimates are dropped
+        and they count as absent), and a step of the flight controller's clock not taken in flight."""
+        if self.bus is not None and self.plans.mission is not None:
+            for j, (_, plan) in sorted(self.bus.statuses.items()):
+                if j != self.id and plan not in self.plans_on_bus and (j, plan) not in self._told_plans:
+                    self._told_plans.add((j, plan))
+                    other = f"{plan:08x}" if isinstance(plan, int) else repr(plan)
+                    self.say(f"agent {j} flies another plan ({other}, not {self.plans.mission.plan_id:08x}): its "
+                             f"estimates are dropped and it counts as absent", mavlink.MAV_SEVERITY_WARNING)
+        step, told = self.autopilot.clock.refused_step_us, self._told_clock_step
+        if step is not None and (told is None or abs(step - told) > OFFSET_STEP_US):
+            self._told_clock_step = step
+            self.say(f"the flight controller's Unix time stepped {step / 1e6:+.3f} s in flight: not taken, plan time "
+                     f"runs on its boot clock", mavlink.MAV_SEVERITY_WARNING)
 
     def stats(self) -> dict:
         out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),

@@ -70,6 +70,19 @@ class Autopilot:
         self._woke = False
         self._pending: dict = {}
 
+    def forget(self) -> None:
+        """The flight controller may be another one (it rebooted, its clock broke, a simulator was
+        started again): nothing of the one before is kept (its clock, its streams, its state, its
+        answers); ``setup`` learns it anew."""
+        self.heard = False
+        self.output = self.last_sample = None
+        self.clock.forget()
+        self.answers = Answers(self.write)
+        self.backlog.clear()
+        self.assembler = Assembler()
+        self.heard_at_us.clear()
+        self._woke = False
+
     def write(self, frame: bytes) -> None:
         self.link.write(frame)
 

@@ -80,7 +80,7 @@ def companion(
     zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
     swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
     from .agent import CompanionOptions, StartupError
-    from .host import agent_options, run_agents
+    from .host import CountingLoop, agent_options, run_agents
 
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(message)s")
@@ -99,7 +99,8 @@ def companion(
                 loop.add_signal_handler(sig, stop.set)
             return await run_agents(every, stop)
 
-        results = asyncio.run(main())
+        with asyncio.Runner(loop_factory=CountingLoop) as runner:
+            results = runner.run(main())
     except (PlanError, ParameterError, GraphError, StartupError) as exc:  # (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None

@@ -25,6 +25,13 @@ from collections.abc import Callable
 
 from .telemetry import REBOOT_JUMP_US
 
+OFFSET_STEP_US = 500_000
+"""In flight, a SYSTEM_TIME that puts the flight controller's Unix time this far [us] from the one
+flown on is a step of its clock (a GPS fix, someone setting it), not drift: it is not taken."""
+OFFSET_SLEW_PPM = 200
+"""In flight, smaller disagreements are taken at most this fast [us per s of the boot clock]: plan
+time stays continuous while it follows the drift of a crystal (tens of ppm)."""
+
 
 class FcClock:
     """Kept in whole microseconds: Unix times near 1.8e9 s hold no better than a quarter of a
@@ -38,14 +45,38 @@ class FcClock:
         """The newest sample's flight-controller time [us since its boot]."""
         self._waiters: list = []
         self._order = itertools.count()
+        self.steady = False
+        """In flight: SYSTEM_TIME may slew the offset, not step it (``set_offset``)."""
+        self.refused_step_us: int | None = None
+        """The newest step of the flight controller's Unix time not taken in flight [us]."""
+        self._set_at_ms: int | None = None
 
     @property
     def known(self) -> bool:
         return self.offset_us is not None
 
     def set_offset(self, time_unix_usec: int, time_boot_ms: int) -> None:
-        """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]."""
-        self.offset_us = int(time_unix_usec) - int(time_boot_ms) * 1000
+        """SYSTEM_TIME: the flight controller's Unix time [us] at its boot time [ms]. On the ground
+        it is taken as it comes; in flight (``steady``) plan time runs on the boot clock: a
+        disagreement above OFFSET_STEP_US is a step and is not taken (``refused_step_us``), a
+        smaller one is taken at OFFSET_SLEW_PPM at most."""
+        offset, boot_ms = int(time_unix_usec) - int(time_boot_ms) * 1000, int(time_boot_ms)
+        if self.offset_us is None or not self.steady:
+            self.offset_us, self._set_at_ms, self.refused_step_us = offset, boot_ms, None
+            return
+        diff = offset - self.offset_us
+        if abs(diff) > OFFSET_STEP_US:
+            self.refused_step_us = diff
+            return
+        room = max(0, boot_ms - self._set_at_ms) * OFFSET_SLEW_PPM // 1000
+        self.offset_us += max(-room, min(room, diff))
+        self._set_at_ms = boot_ms
+
+    def forget(self) -> None:
+        """A new flight controller (a reboot, a clock that broke): its clock is learnt again from
+        its SYSTEM_TIME; until then it is not known."""
+        self.offset_us = self.boot_us = self._set_at_ms = self.refused_step_us = None
+        self.steady = False
 
     def unix(self, boot_us: int) -> float:
         """A flight-controller time as Unix time (the wall clock until SYSTEM_TIME was heard)."""

@@ -4,7 +4,9 @@ them. Nothing here runs per tick but the path check; the tick itself is ``loop.p
 Phases: IDLE (no plan running), SCHEDULED (waiting for the common start time; armed shortly
 before it with ``--autostart``), FLYING (the entry, the formation, or on the way back into it),
 HOLDING (no path from the leader through the agents that are alive, flying and fresh: the drone
-brakes to a stop and holds, pinned to its own reference, until a path returns; then it rejoins).
+brakes to a stop and holds, pinned to its own reference, until a path returns; then it rejoins),
+LOST (the flight controller is silent, or its clock broke: nothing is commanded until it is heard
+again and set up anew; then the flight resumes as after a restart, ``Agent.take_fc_back``).
 
 What the reference follows (``tracking``, a one-agent formation in offsets from the leader):
 the entry (climb from where the drone rests, then blend into its row of the formation), the
@@ -35,13 +37,14 @@ class Phase(enum.Enum):
     SCHEDULED = "scheduled"  # waiting for the common start time (armed shortly before)
     FLYING = "flying"        # in formation (or entering / rejoining it)
     HOLDING = "holding"      # no path to the leader: holding position
+    LOST = "lost"            # the flight controller is lost: nothing commanded until it is back
 
 
-PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3}
+PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3, Phase.LOST: 4}
 """The companion's HEARTBEAT custom_mode in each phase."""
 PHASE_STATUS = {Phase.IDLE: AgentStatus.IDLE, Phase.SCHEDULED: AgentStatus.IDLE, Phase.FLYING: AgentStatus.FLYING,
-                Phase.HOLDING: AgentStatus.HOLDING}
-"""What the bus says of each phase."""
+                Phase.HOLDING: AgentStatus.HOLDING, Phase.LOST: AgentStatus.HOLDING}
+"""What the bus says of each phase (a lost agent publishes no estimate: its neighbours count it absent)."""
 
 
 class Flight:
@@ -79,6 +82,7 @@ class Flight:
         if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
             self.flying_since = now
         self.phase, self.reason, self.since = phase, reason, now
+        self.a.autopilot.clock.steady = self.in_flight  # (in flight, plan time runs on the boot clock)
         self.a.publish_status()
         if phase == Phase.HOLDING:
             self.a.say(f"holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
@@ -172,8 +176,13 @@ class Flight:
         self.set_phase(Phase.FLYING, "")
 
     async def resume(self) -> None:
-        """After a restart: join the formation again from wherever the vehicle is."""
+        """After a restart (of the companion, or of the flight controller): join the formation again
+        from wherever the vehicle is; a plan whose start is still ahead on the flight controller's
+        clock is scheduled again."""
         a, fc = self.a, self.a.autopilot
+        if a.plans.mission.start_unix_s > fc.now_unix():
+            self.schedule()
+            return
         while self.state_now() is None:
             await asyncio.sleep(0.05)
         if not fc.armed or fc.landed:

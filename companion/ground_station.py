@@ -105,6 +105,7 @@ class GroundStation:
             self.router.learn(fc_link, msg)
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if src == (a.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
+                a.fc_heard_s = time.monotonic()  # (the agent's watchdog: a lost flight controller)
                 a.autopilot.take(msg, t_rx)
             for dest in self.router.destinations(fc_link, msg, links):
                 if dest is self.link and not self._rate_ok(msg):
@@ -246,9 +247,5 @@ class GroundStation:
         if self.signing_key is None:
             return
         streams = self.link.codec.signing.streams()
-        if streams != self._signing_kept:
-            try:
-                self.a.store.save_signing_streams(streams)
-                self._signing_kept = streams
-            except OSError as exc:
-                self.a.log.warning(f"signing streams not saved: {exc}")
+        if streams != self._signing_kept and self.a.store.save_signing_streams(streams):  # (a failure: said once)
+            self._signing_kept = streams

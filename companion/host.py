@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import selectors
 
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import PlanError, plan_from_dict
@@ -48,6 +49,31 @@ def agent_options(opts: CompanionOptions, agents: list[tuple[int, str, str]]) ->
 
     return [dataclasses.replace(opts, agent=agent, fc_url=fc_url, gcs_url=gcs_url, state_dir=own(opts.state_dir, agent),
                                 stats_path=own(opts.stats_path, agent)) for agent, fc_url, gcs_url in agents]
+
+
+class _CountingSelector(selectors.DefaultSelector):
+    """The loop's selector: one ``select`` a turn of the loop, counted."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.turns = 0
+
+    def select(self, timeout=None):
+        self.turns += 1
+        return super().select(timeout)
+
+
+class CountingLoop(asyncio.SelectorEventLoop):
+    """The companion's event loop, counting its turns (``turns``): a companion that spins (a wait
+    that does not wait) shows as many turns, on any machine; an idle one as few."""
+
+    def __init__(self) -> None:
+        self._counting = _CountingSelector()
+        super().__init__(self._counting)
+
+    @property
+    def turns(self) -> int:
+        return self._counting.turns
 
 
 class Host:

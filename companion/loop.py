@@ -112,7 +112,7 @@ class ControlLoop:
         ticks = []
         for a in agents:
             s = self._take(a)
-            if s is None:
+            if s is None or a.clock_broke(s):  # (a broken clock: the agent is lost, the sample not flown)
                 continue
             if a.flight.in_flight and a.autopilot.ready:
                 ticks.append(Tick(a, s))

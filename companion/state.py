@@ -1,5 +1,10 @@
 """What a companion keeps across a restart: its plan and where the mission is, written atomically;
-and the signing key file it reads (as the ground station does)."""
+and the signing key file it reads (as the ground station does).
+
+A state folder that cannot be written (read-only, full, a file's path taken by a folder) costs what
+it keeps, never the flight: ``StateStore`` counts the failed writes, says so once (``warn``) when
+writing starts to fail and once when it works again, and the companion flies on; a restart would
+then not find the newest mission."""
 
 from __future__ import annotations
 
@@ -27,12 +32,16 @@ def write_json_atomically(path: Path, data: dict) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with tmp.open("w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with tmp.open("w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=2)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # (a full folder keeps no half-written file)
+        raise
     fd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -59,12 +68,32 @@ class Mission:
 
 
 class StateStore:
-    """JSON files in the state folder (the mission; the signing streams); None folder: keep nothing."""
+    """JSON files in the state folder (the mission; the signing streams); None folder: keep nothing.
+    ``warn(text)`` hears when writing starts to fail and when it works again (once each)."""
 
-    def __init__(self, folder: Path | None) -> None:
+    def __init__(self, folder: Path | None, warn=None) -> None:
         self.path = None if folder is None else Path(folder) / "mission.json"
         self.signing_path = None if folder is None else Path(folder) / "signing.json"
         self.problem: str | None = None
+        self.warn = warn or (lambda text: None)
+        self.failed_writes = 0
+        self._failing: set[Path] = set()
+
+    def _write(self, path: Path, data: dict) -> bool:
+        """Write ``data`` to ``path`` atomically; False (and said once) if the folder will not take it."""
+        try:
+            write_json_atomically(path, data)
+        except OSError as exc:
+            self.failed_writes += 1
+            if path not in self._failing:
+                self._failing.add(path)
+                self.warn(f"cannot write {path} ({exc.strerror or exc}): flying on without it; a restart "
+                          f"would not find the newest state")
+            return False
+        if path in self._failing:
+            self._failing.discard(path)
+            self.warn(f"{path} written again ({self.failed_writes} write(s) failed)")
+        return True
 
     def load(self) -> Mission | None:
         """The saved mission, or None (and ``problem`` says why if the file was unusable)."""
@@ -79,11 +108,14 @@ class StateStore:
 
     def clear(self) -> None:
         if self.path is not None:
-            self.path.unlink(missing_ok=True)
+            try:
+                self.path.unlink(missing_ok=True)
+            except OSError as exc:  # (read-only; a folder in its place)
+                self.failed_writes += 1
+                self.warn(f"cannot remove {self.path} ({exc.strerror or exc})")
 
-    def save(self, mission: Mission) -> None:
-        if self.path is not None:
-            write_json_atomically(self.path, asdict(mission))
+    def save(self, mission: Mission) -> bool:
+        return self.path is None or self._write(self.path, asdict(mission))
 
     def load_signing_streams(self) -> dict:
         """The signing streams kept by ``save_signing_streams`` ({} if none, or unusable: ``problem``)."""
@@ -98,6 +130,5 @@ class StateStore:
             self.problem = f"{self.signing_path}: unusable signing streams ({exc.__class__.__name__}), starting without them"
             return {}
 
-    def save_signing_streams(self, streams: dict) -> None:
-        if self.signing_path is not None:
-            write_json_atomically(self.signing_path, streams)
+    def save_signing_streams(self, streams: dict) -> bool:
+        return self.signing_path is None or self._write(self.signing_path, streams)

@@ -33,7 +33,7 @@ FAILSAFE_TEXT_S = 10.0
 ONCE_LISTEN_S = 1.5
 TEXT_CHARS = 40
 PLAIN_WIDTH = 200
-PHASES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding"}
+PHASES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding", 4: "fc lost"}
 """The companion's HEARTBEAT custom_mode (companion.PHASE_MODE)."""
 
 

@@ -47,6 +47,7 @@ class Recorder:
             self._socks[s] = v["sysid"]
             self.tracks[v["sysid"]] = Track()
         self._offset: dict[int, float] = {}
+        self._boot_ms: dict[int, int] = {}
         self._att: dict[int, tuple] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -99,8 +100,13 @@ class Recorder:
         if m.get_srcSystem() != sysid:
             return
         if t == "SYSTEM_TIME" and m.time_unix_usec > 0:
-            self._offset[sysid] = m.time_unix_usec / 1e6 - m.time_boot_ms / 1000.0
-            self._fc_now[sysid] = m.time_unix_usec / 1e6
+            # (a track runs on the vehicle's boot clock from the first SYSTEM_TIME of each boot: a
+            # step of its Unix time, someone setting its clock, does not move what it flew)
+            boot = self._boot_ms.get(sysid)
+            if sysid not in self._offset or boot is None or m.time_boot_ms < boot:
+                self._offset[sysid] = m.time_unix_usec / 1e6 - m.time_boot_ms / 1000.0
+            self._boot_ms[sysid] = m.time_boot_ms
+            self._fc_now[sysid] = self._offset[sysid] + m.time_boot_ms / 1000.0
         elif t == "ATTITUDE":
             self._att[sysid] = (m.time_boot_ms, attitude_to_paper(m.roll, m.pitch, m.yaw))
         elif t == "LOCAL_POSITION_NED":

@@ -87,6 +87,9 @@ class Stack:
     alone: tuple[int, ...] = ()
     """Agents that fly in a process of their own whatever ``agents_per_process`` says (a test that
     kills a companion kills one agent)."""
+    sitl_base_port: int = 0
+    """The SITL's first UDP port (0: any free ports). A fixed one lets a test kill the SITL and start
+    it again on the same ports (``restart_sitl``), where the companions look for it."""
     lockstep: bool = False
     """The SITL steps when every companion has answered (``sitl up --lockstep``): the stack runs on
     simulated time, as fast as the machine allows. ``start_at`` is then on that clock, and
@@ -114,20 +117,7 @@ class Stack:
     def _start(self) -> "Stack":
         for sub in ("logs", "state", "stats"):
             (self.workdir / sub).mkdir(parents=True, exist_ok=True)
-        manifest_path = self.workdir / "manifest.json"
-        self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
-                             str(manifest_path), "--base-port", "0", "--stats", str(self.workdir / "stats" / "sitl.json"),
-                             *(["--lockstep"] if self.lockstep else ["--quiet"]), *self.sitl_args])
-        deadline = time.monotonic() + 60.0
-        while not manifest_path.exists():
-            if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
-                self.__exit__(None, None, None)  # (first: the log is complete once the sitl is gone)
-                log = self.workdir / "logs" / "sitl.log"
-                lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
-                said = f": {lines[-1].strip()}" if lines else ""
-                raise StackError(f"sitl did not start{said} (log: {log})")
-            time.sleep(0.05)
-        self.manifest = json.loads(manifest_path.read_text())
+        self.manifest = self._start_sitl()
         zenoh_ports = free_ports(self.n, contiguous=True)
         self.zenoh_base = zenoh_ports[0] - 1
         self.gcs_ports = free_ports(self.n, exclude=frozenset(zenoh_ports))  # (a companion binds both)
@@ -146,6 +136,38 @@ class Stack:
         self.swarm_manifest = self.workdir / "swarm.json"
         write_manifest(self.swarm_manifest, Path(self.plan_path).stem if self.plan_path else "triswarm", self.endpoints())
         return self
+
+    def _start_sitl(self) -> dict:
+        """Start the SITL and wait for its manifest."""
+        manifest_path = self.workdir / "manifest.json"
+        manifest_path.unlink(missing_ok=True)
+        self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
+                             str(manifest_path), "--base-port", str(self.sitl_base_port),
+                             "--stats", str(self.workdir / "stats" / "sitl.json"),
+                             *(["--lockstep"] if self.lockstep else ["--quiet"]), *self.sitl_args])
+        deadline = time.monotonic() + 60.0
+        while not manifest_path.exists():
+            if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
+                self.__exit__(None, None, None)  # (first: the log is complete once the sitl is gone)
+                log = self.workdir / "logs" / "sitl.log"
+                lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+                said = f": {lines[-1].strip()}" if lines else ""
+                raise StackError(f"sitl did not start{said} (log: {log})")
+            time.sleep(0.05)
+        return json.loads(manifest_path.read_text())
+
+    def kill_sitl(self, sig: int = signal.SIGKILL) -> None:
+        """Signal the SITL (every flight controller goes with it) and wait for it to go."""
+        proc = self.procs["sitl"]
+        proc.send_signal(sig)
+        proc.wait(timeout=10)
+
+    def restart_sitl(self) -> dict:
+        """Start the SITL again (on the same ports if ``sitl_base_port`` is set): flight controllers
+        that rebooted, on the ground, with a new clock. Returns its manifest."""
+        assert self.procs["sitl"].poll() is not None, "the SITL still runs"
+        self.manifest = self._start_sitl()
+        return self.manifest
 
     def endpoints(self) -> dict[int, str]:
         """The ground station's URL of each companion."""

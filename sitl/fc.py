@@ -326,6 +326,14 @@ class FlightController:
         self.counters["actuator_commands"] += 1
         return []
 
+    def _on_system_time(self, msg, link, now_s, snap):
+        """Someone sets the clock (as autopilots take it from a ground station): its Unix time steps
+        to ``time_unix_usec`` now, a whole millisecond; its boot time runs on."""
+        if msg.time_unix_usec > 0:
+            self.boot_unix_s = round(msg.time_unix_usec / 1000.0 - now_s * 1000.0) / 1000.0
+            self.counters["clock_set"] += 1
+        return []
+
     def _on_timesync(self, msg, link, now_s, snap):
         if msg.tc1 != 0:
             return []

@@ -36,6 +36,9 @@ MAX_DATAGRAMS_PER_WAKEUP = 256  # drain a flood in slices so the physics keeps i
 RECV_BUFFER_BYTES = 4 << 20
 LOCKSTEP_POLL_S = 0.1  # while the clock waits: look at the watchdog this often [s]
 REPORT_EVERY_S = 10.0  # lockstep: say how fast the clock runs this often [s]
+STANDING_HEARTBEAT_S = 1.0
+"""Lockstep: while the clock stands this long [s, wall], every vehicle sends its heartbeat on the wall
+clock (a companion tells a dead flight controller from a waiting one by its silence)."""
 ACTUATOR_MSG_ID = mavlink.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
 SCHEDULED = (mavlink.MAVLINK_MSG_ID_HEARTBEAT, *(m for m, _, _ in STREAMS.values()))
 """Every message a vehicle sends on its own schedule (rates from ``FlightController.stream_rate_hz``)."""
@@ -387,6 +390,7 @@ class SitlServer:
         self._wall_start_mono = time.monotonic()
         self._report = (time.monotonic(), self.swarm.time_s)
         told_missing = time.monotonic()
+        standing = (time.monotonic(), self.swarm.steps)  # (wall time, step) the clock last moved
         self._lockstep_running = True
         try:
             self._advance()
@@ -400,6 +404,13 @@ class SitlServer:
                         told_missing = now
                         self.say("lockstep: the clock waits for the companions of vehicles "
                                  + ", ".join(str(self.swarm.fcs[i].sysid) for i in ls.missing()))
+                if self.swarm.steps != standing[1]:
+                    standing = (now, self.swarm.steps)
+                elif ls.started and now - standing[0] >= STANDING_HEARTBEAT_S:
+                    standing = (now, self.swarm.steps)
+                    for i in range(self.swarm.n):
+                        for name in LINKS:
+                            self._send_batch(i, name, [mavlink.MAVLINK_MSG_ID_HEARTBEAT])
                 offer, dropped = ls.overdue(now, self.swarm.time_s)
                 for i in offer:
                     self._offer(i)
