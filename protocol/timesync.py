@@ -148,3 +148,27 @@ def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, 
     sxx = float((w * dx * dx).sum())
     b = float((w * dx * (y - ym)).sum()) / sxx if sxx > 0 else 0.0
     return ym - b * xm, b
+
+
+START_CLOCK_MAX_ERROR_S = 0.005
+"""The largest error of the clock a plan starts on [s]. A plan's places move with plan time, so two
+drones whose clocks differ by d fly references v d apart: the case study's places move at 10 m/s
+(10 m from the centre at 1 rad/s), and two clocks each within 5 ms of UTC are within 10 ms of each
+other, 0.1 m at that speed, the paper's whole bound on the formation error."""
+
+
+def start_clock_problem(synchronised: bool, max_error_s: float, fc_minus_companion_s: float | None,
+                        bound_s: float = START_CLOCK_MAX_ERROR_S) -> str | None:
+    """Why a plan must not start on this clock, or None. The plan runs on the flight controller's
+    Unix time (its SYSTEM_TIME); its error is that clock's distance from the companion's
+    (``fc_minus_companion_s``, through TIMESYNC; None: not known yet) plus the companion's own
+    error bound (the kernel's ``max_error_s``, kept by NTP/chrony; ``synchronised`` False: none)."""
+    if not synchronised:
+        return "the companion's clock is not synchronised (no NTP/chrony lock): the swarm has no common start time"
+    if fc_minus_companion_s is None:
+        return "no TIMESYNC with the flight controller yet: its clock's error is unknown"
+    error_s = abs(fc_minus_companion_s) + max_error_s
+    if not error_s <= bound_s:
+        return (f"the start clock may be {error_s * 1e3:.1f} ms off (flight controller {fc_minus_companion_s * 1e3:+.1f} ms "
+                f"from the companion, whose error is up to {max_error_s * 1e3:.1f} ms), over {bound_s * 1e3:g} ms")
+    return None

@@ -62,3 +62,31 @@ def test_too_few_exchanges_give_no_fit():
     assert fit_exchanges(exchanges(7, seed=3)) is None
     with pytest.raises(ValueError):
         TimesyncFilter(window=4)
+
+
+def test_start_clock_check():
+    from triswarm.protocol.timesync import START_CLOCK_MAX_ERROR_S, start_clock_problem
+
+    assert "not synchronised" in start_clock_problem(False, 16.0, 0.0)
+    assert "no TIMESYNC" in start_clock_problem(True, 0.001, None)
+    assert start_clock_problem(True, 0.001, -0.003) is None  # 4 ms: within 5
+    assert "6.0 ms off" in start_clock_problem(True, 0.001, 0.005)
+    assert "over 5 ms" in start_clock_problem(True, START_CLOCK_MAX_ERROR_S + 1e-6, 0.0)
+
+
+def test_a_plan_start_is_refused_on_a_bad_clock(tmp_path):
+    """The plan-start command gets the check's reason in one line, and nothing is scheduled."""
+    import logging
+
+    from triswarm.companion.clock import FcClock
+    from triswarm.companion.plans import Plans
+    from triswarm.protocol.mavlink import mavlink
+
+    scheduled = []
+    plans = Plans(1, None, FcClock(), logging.getLogger("test"), lambda reopen: None, lambda: scheduled.append(1),
+                  lambda: False)
+    plans.clock_check = lambda: "the companion's clock is not synchronised"
+    result, reason = plans.start(0x1234, 4e9)
+    assert result == mavlink.MAV_RESULT_DENIED
+    assert reason == "plan start refused: the companion's clock is not synchronised"
+    assert plans.mission is None and not scheduled
