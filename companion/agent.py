@@ -40,8 +40,10 @@ from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.formation import RelativeTo
 from triswarm.protocol.mavlink import mavlink
 
+from triswarm.protocol.timesync import start_clock_problem
+
 from .autopilot import Autopilot
-from .clock import OFFSET_STEP_US
+from .clock import OFFSET_STEP_US, kernel_clock
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
 from .ground_station import GroundStation, Params
 from .health import LoopHealth
@@ -115,6 +117,9 @@ class Agent:
         self.gcs = GroundStation(self, opts.gcs_url, key)
         self.plans = Plans(self.id, self.store, self.autopilot.clock, self.log, self._reopen, self._schedule,
                            lambda: self.flight.in_flight)
+        self.plans.clock_check = self.start_clock_problem
+        self.kernel_clock = kernel_clock
+        """The kernel's word on the wall clock (a test puts its own)."""
         self.plan_server = PlanServer(lambda items: self.plans.receive(items, self.loop), self._clear_plans,
                                       self.plans.held_items, self.say)
         self.flight = Flight(self)
@@ -270,6 +275,7 @@ class Agent:
             tasks.append(asyncio.create_task(self._every_second()))
             tasks.append(asyncio.create_task(self._poll_plans()))
             tasks.append(asyncio.create_task(self._mission_task()))
+            tasks.append(asyncio.create_task(self.autopilot.keep_time()))
             await stop.wait()
         finally:  # stop ticking first, then the tasks, then the bus
             for link in (self.autopilot.link, self.gcs.link):
@@ -316,6 +322,10 @@ class Agent:
             await self.flight.resume()
             return
         if self.opts.autostart and m.phase != "done":
+            problem = self.start_clock_problem()
+            if problem:
+                self.say(f"plan start refused: {problem}", mavlink.MAV_SEVERITY_ERROR)
+                return
             m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
             m.phase = "scheduled"
             self.plans.save()
@@ -343,6 +353,18 @@ class Agent:
                 self.gcs.health_values(report)
             await asyncio.sleep(1.0)
 
+    def start_clock_problem(self) -> str | None:
+        """Why a plan must not start on the flight controller's clock now, or None (its SYSTEM_TIME
+        against the companion's clock through TIMESYNC, and the companion's clock's error). Not
+        checked with triswarm's simulator, whose clock is its host's, shared with the companions."""
+        ap = self.autopilot
+        if ap.simulator:
+            return None
+        boot = ap.timesync.fc_boot_unix_s()
+        fc_minus = None if boot is None or not ap.clock.known else ap.clock.offset_us / 1e6 - boot
+        k = self.kernel_clock()
+        return start_clock_problem(k.synchronised, k.max_error_s, fc_minus)
+
     def health_report(self) -> dict:
         now = time.time()
         table = self.bus.estimates
@@ -351,7 +373,8 @@ class Agent:
         silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
                       counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
-                      loop_turns=getattr(self.host.loop, "turns", None))  # (the process's: ``host.CountingLoop``)
+                      loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
+                      **self.autopilot.timesync.report())
         return report
 
     # -- faults -------------------------------------------------------------------------------------
@@ -444,7 +467,8 @@ class Agent:
     def stats(self) -> dict:
         out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),
                "tick_errors": self.errors,
-               "links": {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)}}
+               "links": {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)},
+               "fc_clock": self.autopilot.timesync.report()}
         if self.bus is not None:
             out["zenoh"] = self.bus.counts()
         return out

@@ -31,6 +31,8 @@ from .actuators import ActuatorControlTarget
 from .clock import Answers, FcClock
 from .links import MavLink
 from .telemetry import Assembler, Sample
+from .timesync import EVERY_S as TIMESYNC_EVERY_S
+from .timesync import TimeSync
 
 FALLBACK_US = 500_000
 """A less preferred message carries a quantity once the preferred one has not come for this long."""
@@ -61,6 +63,9 @@ class Autopilot:
         self.output: ActuatorControlTarget | None = None
         self.clock = FcClock()
         self.answers = Answers(self.write)
+        self.timesync = TimeSync(self.send, sysid)
+        self.simulator = False
+        """The flight controller is triswarm's simulator (it has SIM_LOCKSTEP): its clock is its host's."""
         self.last_sample: Sample | None = None
         self.backlog: deque[Sample] = deque(maxlen=50)
         """Samples not acted on yet (the control loop takes them)."""
@@ -110,6 +115,8 @@ class Autopilot:
         elif t == "SYSTEM_TIME":
             if msg.time_unix_usec > 0:
                 self.clock.set_offset(msg.time_unix_usec, msg.time_boot_ms)
+        elif t == "TIMESYNC":
+            self.timesync.take(msg)
         elif t == "EXTENDED_SYS_STATE":
             self.landed = msg.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
         elif t == "COMMAND_ACK":
@@ -206,6 +213,7 @@ class Autopilot:
                 f"airframe ({self.max_rpm:g} RPM, {self.servo_deg:g} deg)")
         try:
             self.answers.lockstep = await self.param("SIM_LOCKSTEP") == 1.0
+            self.simulator = True
         except TimeoutError:  # an autopilot, not triswarm's simulator
             self.answers.lockstep = False
         if self.answers.lockstep:
@@ -274,6 +282,14 @@ class Autopilot:
             return float(round(att_hz))
         self.log.info(line)
         return rate_hz
+
+    async def keep_time(self) -> None:
+        """TIMESYNC requests every TIMESYNC_EVERY_S once set up (not with a simulator in lockstep,
+        whose clock is no clock the wall's can be held against)."""
+        while True:
+            if self.ready and not self.answers.lockstep:
+                self.timesync.request()
+            await asyncio.sleep(TIMESYNC_EVERY_S)
 
     # -- commanding it --------------------------------------------------------------------------
 

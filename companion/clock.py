@@ -18,10 +18,12 @@ the flight controller before the answer, at the same step.
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import heapq
 import itertools
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from .telemetry import REBOOT_JUMP_US
 
@@ -118,6 +120,40 @@ class FcClock:
         fut = asyncio.get_running_loop().create_future()
         heapq.heappush(self._waiters, (t_us, next(self._order), fut))
         await fut
+
+
+@dataclass(frozen=True)
+class KernelClock:
+    """What the kernel says of the wall clock (adjtimex, kept by NTP/chrony/ntpd)."""
+
+    synchronised: bool
+    max_error_s: float
+
+
+class _Timex(ctypes.Structure):  # struct timex, <sys/timex.h> (Linux)
+    _fields_ = [("modes", ctypes.c_uint), ("offset", ctypes.c_long), ("freq", ctypes.c_long),
+                ("maxerror", ctypes.c_long), ("esterror", ctypes.c_long), ("status", ctypes.c_int),
+                ("constant", ctypes.c_long), ("precision", ctypes.c_long), ("tolerance", ctypes.c_long),
+                ("tv_sec", ctypes.c_long), ("tv_usec", ctypes.c_long), ("tick", ctypes.c_long),
+                ("ppsfreq", ctypes.c_long), ("jitter", ctypes.c_long), ("shift", ctypes.c_int),
+                ("stabil", ctypes.c_long), ("jitcnt", ctypes.c_long), ("calcnt", ctypes.c_long),
+                ("errcnt", ctypes.c_long), ("stbcnt", ctypes.c_long), ("tai", ctypes.c_int), ("_pad", ctypes.c_int * 11)]
+
+
+TIME_ERROR = 5   # adjtimex's answer: the clock is not synchronised
+STA_UNSYNC = 0x0040
+
+
+def kernel_clock() -> KernelClock:
+    """The kernel's word on the wall clock: adjtimex with no change asked (any user may), its
+    ``maxerror`` [us] the bound NTP/chrony keep on its error. Not Linux: not synchronised."""
+    tx = _Timex()
+    try:
+        state = ctypes.CDLL(None, use_errno=True).adjtimex(ctypes.byref(tx))
+    except (AttributeError, OSError):
+        return KernelClock(False, float("inf"))
+    synced = state not in (-1, TIME_ERROR) and not tx.status & STA_UNSYNC
+    return KernelClock(synced, tx.maxerror / 1e6)
 
 
 class Answers:

@@ -34,7 +34,9 @@ UNSIGNED_FROM_GCS = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK
 """With a signing key: what the ground-station link takes unsigned (see the module's text)."""
 GCS_LINK_ID = 1  # the ground-station link's id in the signatures it sends
 HEALTH_VALUES = (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
-                 ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"), ("FORM_ERRM", "formation_error_m"))
+                 ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"), ("FORM_ERRM", "formation_error_m"),
+                 ("FC_PPM", "fc_clock_drift_ppm"), ("FC_RTT_US", "fc_clock_rtt_min_us"),
+                 ("FC_RES_US", "fc_clock_residual_us"))
 """NAMED_VALUE_FLOAT names of the health report's values, sent once a second."""
 
 

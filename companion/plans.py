@@ -121,6 +121,8 @@ class Plans:
         """Received, valid, waiting for its start command."""
         self.switch: tuple[Plan, int, float] | None = None
         """A plan to put in force in flight, and when [Unix s]."""
+        self.clock_check = lambda: None
+        """Why the clock a plan starts on is not good enough for a common start, or None."""
         self._items: tuple = (None, [])
 
     @property
@@ -219,6 +221,9 @@ class Plans:
             return mavlink.MAV_RESULT_ACCEPTED, ""  # a retry of the same command
         if not (math.isfinite(start_unix_s) and start_unix_s > self.clock.now() - 1.0):
             return mavlink.MAV_RESULT_DENIED, "plan start refused: the start time has passed"
+        clock_problem = self.clock_check()
+        if clock_problem:
+            return mavlink.MAV_RESULT_DENIED, f"plan start refused: {clock_problem}"
         if self.staged is not None and self.staged[1] == pid:
             plan = self.staged[0]
         elif m is not None and m.plan_id == pid:

@@ -220,6 +220,9 @@ def sitl_up(
     turbulence: Turbulence = None,
     gust: Gusts = None,
     seed: Annotated[int, typer.Option(help="Seed for sensor noise and turbulence.")] = 0,
+    clock_drift_ppm: Annotated[float, typer.Option(help="The flight controllers' clocks run this much faster than "
+                                                        "simulated time (a crystal's error): every stamp they send, "
+                                                        "TIMESYNC's too [ppm].")] = 0.0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
     """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
@@ -237,6 +240,9 @@ def sitl_up(
         _finite("duration", duration, positive=True)
         _finite("lockstep-timeout-s", lockstep_timeout_s, positive=True)
         _finite("max-rtf", max_rtf, positive=True)
+        _finite("clock-drift-ppm", clock_drift_ppm)
+        if abs(clock_drift_ppm) > 1000.0:
+            raise UserError(f"--clock-drift-ppm must be within +-1000 (a crystal's error), got {clock_drift_ppm:g}")
         if max_rtf is not None and not lockstep:
             raise UserError("--max-rtf goes with --lockstep (in real time the clock is the wall's)")
         if lockstep and speedup != 1.0:
@@ -255,7 +261,8 @@ def sitl_up(
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
-                           seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust))
+                           seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust),
+                           clock_drift_ppm=clock_drift_ppm)
 
         def ready(m: dict) -> None:
             write_json_atomically(manifest, m)

@@ -124,6 +124,16 @@ class FlightController:
         self.battery_used_mah = 0.0
         self.battery_voltage_v = self._open_circuit_voltage()
         self.battery_current_a = 0.0
+        self.clock_ppm = 0.0
+        """How much faster this autopilot's clock runs than simulated time [ppm]: every stamp it sends
+        (telemetry, SYSTEM_TIME, TIMESYNC) is on its clock."""
+        self.rx_time_s: float | None = None
+        """Simulated time at which the message being handled arrived (the wall clock's, in real time;
+        None: the step's)."""
+
+    def clock_s(self, now_s: float) -> float:
+        """This autopilot's clock [s since boot] at simulated time ``now_s``."""
+        return now_s * (1.0 + self.clock_ppm * 1e-6)
 
     # -- parameters -------------------------------------------------------------------------
 
@@ -337,7 +347,8 @@ class FlightController:
     def _on_timesync(self, msg, link, now_s, snap):
         if msg.tc1 != 0:
             return []
-        fields = dict(tc1=int(now_s * 1e9), ts1=msg.ts1)
+        # (stamped on arrival, as an autopilot does: in real time, the wall clock's, not the step's)
+        fields = dict(tc1=round(self.clock_s(now_s if self.rx_time_s is None else self.rx_time_s) * 1e9), ts1=msg.ts1)
         if "target_system" in msg.get_fieldnames():
             fields.update(target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent())
         return [Outgoing(mavlink.MAVLink_timesync_message(**fields), link)]
@@ -525,7 +536,7 @@ class FlightController:
 
     def build(self, msg_id: int, now_s: float, snap: Snapshot):
         """The message ``msg_id`` describing the vehicle now, or None if this autopilot has none."""
-        return telemetry.build(self, msg_id, now_s, snap)
+        return telemetry.build(self, msg_id, self.clock_s(now_s), snap)
 
 
 def _param_name(param_id) -> str:

@@ -43,6 +43,8 @@ class SitlOptions:
     """Step the clock by the companions' answers instead of the wall clock (``lockstep.py``)."""
     wind: Wind | None = None
     """The air the vehicles fly in (``protocol.wind``), its turbulence seeded by ``seed``; None: no air."""
+    clock_drift_ppm: float = 0.0
+    """The flight controllers' clocks run this much faster than simulated time [ppm] (``fc.clock_s``)."""
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -63,6 +65,7 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
                       seed=opts.seed, first_id=opts.first_id, wind=opts.wind)
     for i, fc in enumerate(swarm.fcs):
+        fc.clock_ppm = opts.clock_drift_ppm
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
             if problem:

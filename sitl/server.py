@@ -96,6 +96,7 @@ class SitlServer:
         self.max_lag_s = 0.0
         self.overruns = 0
         self.wall_start = 0.0
+        self._wall_sim0 = 0.0
         self.wall_elapsed = 0.0
         self.exceptions = 0
         self._lockstep_running = False
@@ -180,6 +181,8 @@ class SitlServer:
                 return
         link.peers[addr] = now_wall
         fc = self.swarm.fcs[link.vehicle]
+        if self.lockstep is None and self.wall_start:  # (the autopilot's clock on arrival: the wall's)
+            fc.rx_time_s = max(self.swarm.time_s, self._wall_sim0 + (now_wall - self.wall_start) * self.speedup)
         try:
             reset_parser(link.parser)
             msgs = link.parser.parse_buffer(data) or []
@@ -292,11 +295,12 @@ class SitlServer:
             return
         fc = self.swarm.fcs[i]
         now_s = self.swarm.time_s
+        stamp_s = fc.clock_s(now_s)  # (every vehicle's clock runs at the same rate: one batch for all)
         rows = self.swarm.sensor_rows()
         snap = None
         data = bytearray()
         for msg_id in ids:
-            args = batch_args(msg_id, now_s, rows)
+            args = batch_args(msg_id, stamp_s, rows)
             if args is not None:
                 msg = CONSTRUCTORS[msg_id](*args[i])
             else:
@@ -306,7 +310,7 @@ class SitlServer:
             self.sent[msg_id] += 1
         self._sendto(link, bytes(data), peers)
         if self.lockstep is not None and name == "companion" and not HIGH_RATE_IDS.isdisjoint(ids):
-            self.lockstep.sent(i, _ms(now_s) * 1000, now_wall)
+            self.lockstep.sent(i, _ms(stamp_s) * 1000, now_wall)
 
     def _offer(self, i: int) -> None:
         """Lockstep: vehicle i's high-rate state, now, to its companion again (it answers it)."""
@@ -329,6 +333,7 @@ class SitlServer:
         gc.collect()
         gc.freeze()
         self.wall_start = loop.time()
+        self._wall_sim0 = self.swarm.time_s
         self.end_s = math.inf if duration_s is None else self.swarm.time_s + duration_s
         if self.lockstep is None:  # SYSTEM_TIME = the wall clock at start, then sim time
             self.boot_unix_s = math.floor((time.time() - self.swarm.time_s) * 1000.0) / 1000.0
