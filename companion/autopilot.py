@@ -24,13 +24,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from triswarm.protocol.frames import attitude_from_mavlink, body_velocity_to_earth
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 
 from .actuators import ActuatorControlTarget
 from .clock import Answers, FcClock
 from .links import MavLink
-from .telemetry import Assembler, Sample
+from .telemetry import Assembler, Sample, attitude_of, gyro_of, position_of
 from .timesync import EVERY_S as TIMESYNC_EVERY_S
 from .timesync import TimeSync
 
@@ -130,20 +129,15 @@ class Autopilot:
         self.heard_at_us[t] = t_us
         asm = self.assembler
         if t in ATTITUDE_SOURCES and self._preferred(t, ATTITUDE_SOURCES, t_us):
-            if t == "ATTITUDE":
-                eta = (msg.roll, -msg.pitch, -msg.yaw)  # FRD in NED -> the paper's
-            else:
-                eta = attitude_from_mavlink(msg.q)
-            asm.take_attitude(t_us, eta, (msg.rollspeed, -msg.pitchspeed, -msg.yawspeed))
+            asm.take_attitude(t_us, *attitude_of(msg))
         if t in POSITION_SOURCES and self._preferred(t, POSITION_SOURCES, t_us):
-            if t == "LOCAL_POSITION_NED":
-                asm.take_position(t_us, (msg.x, -msg.y, -msg.z), (msg.vx, -msg.vy, -msg.vz))
-            elif msg.frame_id == mavlink.MAV_FRAME_LOCAL_NED and msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD:
-                asm.take_position(t_us, (msg.x, -msg.y, -msg.z), body_velocity_to_earth(msg.q, (msg.vx, msg.vy, msg.vz)))
-            else:
+            state = position_of(msg)
+            if state is None:
                 asm.counters["odometry_frames_not_used"] += 1
+            else:
+                asm.take_position(t_us, *state)
         if t == "HIGHRES_IMU":
-            asm.take_gyro(t_us, (msg.xgyro, -msg.ygyro, -msg.zgyro))
+            asm.take_gyro(t_us, gyro_of(msg))
         s = asm.sample(t_rx)
         if s is not None:
             self._sample(s)

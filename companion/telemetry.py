@@ -19,7 +19,8 @@ than the newest of their stream (out of order) are dropped and counted; the same
 a flight controller that restarted: every stream starts again.
 
 Times are the flight controller's boot clock in microseconds (ms-stamped messages times 1000).
-No I/O: the autopilot face (``autopilot.py``) feeds it parsed messages.
+No I/O: the autopilot face (``autopilot.py``) feeds it parsed messages, read here into the paper's
+frames (``attitude_of``, ``position_of``, ``gyro_of``).
 """
 
 from __future__ import annotations
@@ -28,11 +29,48 @@ import math
 from collections import Counter
 from dataclasses import dataclass
 
+from triswarm.protocol.frames import attitude_from_mavlink, body_velocity_to_earth
+from triswarm.protocol.mavlink import mavlink
+
 REBOOT_JUMP_US = 1_000_000
 """A stamp this much older than the newest of its stream is a restarted flight controller."""
 MAX_POSITION_AGE_US = 250_000
 """A position older than this at a tick is not used: the observer runs on its model meanwhile."""
 NAN3 = (math.nan, math.nan, math.nan)
+
+
+def attitude_of(msg) -> tuple[tuple, tuple]:
+    """ATTITUDE, ATTITUDE_QUATERNION or ODOMETRY (FRD body in NED) as the paper's Euler angles [rad]
+    and body rates [rad/s]."""
+    kind = msg.get_type()
+    if kind == "ATTITUDE":
+        eta = (msg.roll, -msg.pitch, -msg.yaw)
+    elif kind == "ATTITUDE_QUATERNION":
+        eta = attitude_from_mavlink((msg.q1, msg.q2, msg.q3, msg.q4))
+    else:
+        eta = attitude_from_mavlink(msg.q)
+    return eta, (msg.rollspeed, -msg.pitchspeed, -msg.yawspeed)
+
+
+def position_of(msg) -> tuple[tuple, tuple] | None:
+    """LOCAL_POSITION_NED or ODOMETRY as the paper's earth-frame position [m] and velocity [m/s];
+    None for an ODOMETRY in frames the companion does not fly on (not local NED, or its velocity
+    neither in the body's FRD nor in local NED)."""
+    position = (msg.x, -msg.y, -msg.z)
+    if msg.get_type() == "LOCAL_POSITION_NED":
+        return position, (msg.vx, -msg.vy, -msg.vz)
+    if msg.frame_id != mavlink.MAV_FRAME_LOCAL_NED:
+        return None
+    if msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD:
+        return position, body_velocity_to_earth(msg.q, (msg.vx, msg.vy, msg.vz))
+    if msg.child_frame_id == mavlink.MAV_FRAME_LOCAL_NED:
+        return position, (msg.vx, -msg.vy, -msg.vz)
+    return None
+
+
+def gyro_of(msg) -> tuple:
+    """HIGHRES_IMU's gyro (FRD) as the paper's body rates [rad/s]."""
+    return msg.xgyro, -msg.ygyro, -msg.zgyro
 
 
 @dataclass(slots=True)

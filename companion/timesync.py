@@ -49,7 +49,10 @@ class TimeSync:
         self._outstanding[t] = None
         while len(self._outstanding) > OUTSTANDING:
             self._outstanding.popitem(last=False)
-        self._send(mavlink.MAVLink_timesync_message(0, t, self.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1))
+        msg = mavlink.MAVLink_timesync_message(0, t)
+        if "target_system" in msg.get_fieldnames():  # (common.xml's later extension fields)
+            msg.target_system, msg.target_component = self.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1
+        self._send(msg)
         self.counters["requests"] += 1
 
     def take(self, msg) -> None:

@@ -139,3 +139,60 @@ def test_rates_from_the_attitude_message_else_the_gyro():
     assert a.sample(0.0).rate_b_rad_s == (0.5, 0.6, 0.7)
     a.take_attitude(5_000, eta(5_000), (0.1, 0.2, 0.3))
     assert a.sample(0.0).rate_b_rad_s == (0.1, 0.2, 0.3)
+
+
+# -- reading the messages: each carrier of a quantity says the same, in the paper's frames ----------
+
+def _wire(msg):
+    """``msg`` packed and parsed again by pymavlink: real MAVLink 2 framing both ways."""
+    from triswarm.protocol.mavlink import new_codec
+    out = new_codec(1, 1).parse_buffer(msg.pack(new_codec(1, 1)))
+    assert out and len(out) == 1
+    return out[0]
+
+
+ATTITUDES_NED = [(0.1, 0.2, 0.3), (-0.4, 0.3, -2.5), (0.5, -0.45, 3.0)]
+
+
+@pytest.mark.parametrize("roll, pitch, yaw", ATTITUDES_NED)
+def test_every_attitude_message_reads_as_the_same_paper_attitude(roll, pitch, yaw):
+    """ATTITUDE, ATTITUDE_QUATERNION and ODOMETRY of one FRD-in-NED attitude (quaternion by scipy,
+    an independent convention) read as (roll, -pitch, -yaw), with the body rates flipped alike."""
+    from scipy.spatial.transform import Rotation
+
+    from triswarm.companion.telemetry import attitude_of, gyro_of, position_of
+    from triswarm.protocol.mavlink import mavlink
+
+    rot = Rotation.from_euler("ZYX", [yaw, pitch, roll])  # FRD body -> NED
+    x, y, z, w = rot.as_quat()
+    q = [w, x, y, z]
+    rates, v_frd, p_ned = (0.1, -0.2, 0.3), (3.0, -1.0, 0.5), (4.0, -6.0, -20.0)
+    att = _wire(mavlink.MAVLink_attitude_message(1000, roll, pitch, yaw, *rates))
+    attq = _wire(mavlink.MAVLink_attitude_quaternion_message(1000, *q, *rates))
+    odom = _wire(mavlink.MAVLink_odometry_message(
+        1_000_000, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *p_ned, q, *v_frd, *rates,
+        [math.nan] * 21, [math.nan] * 21))
+    want_eta, want_rates = (roll, -pitch, -yaw), (0.1, 0.2, -0.3)
+    for msg in (att, attq, odom):
+        eta, got_rates = attitude_of(msg)
+        assert eta == pytest.approx(want_eta, abs=1e-6), msg.get_type()
+        assert got_rates == pytest.approx(want_rates, abs=1e-6), msg.get_type()
+    v_ned = rot.apply(v_frd)
+    position, velocity = position_of(odom)
+    assert position == pytest.approx((4.0, 6.0, 20.0), abs=1e-5)
+    assert velocity == pytest.approx((v_ned[0], -v_ned[1], -v_ned[2]), abs=1e-5)
+    lpos = _wire(mavlink.MAVLink_local_position_ned_message(1000, *p_ned, *v_ned))
+    assert position_of(lpos) == (pytest.approx((4.0, 6.0, 20.0), abs=1e-5),
+                                 pytest.approx((v_ned[0], -v_ned[1], -v_ned[2]), abs=1e-5))
+    imu = _wire(mavlink.MAVLink_highres_imu_message(1_000_000, 0, 0, -9.8, *rates, 0, 0, 0, 0, 0, 0, 0, 0b111000))
+    assert gyro_of(imu) == pytest.approx(want_rates, abs=1e-6)
+
+
+def test_an_odometry_in_frames_not_flown_on_is_not_read():
+    from triswarm.companion.telemetry import position_of
+    from triswarm.protocol.mavlink import mavlink
+
+    odom = _wire(mavlink.MAVLink_odometry_message(
+        1_000_000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 1.0, 2.0, 3.0, [1, 0, 0, 0], 0, 0, 0,
+        0, 0, 0, [math.nan] * 21, [math.nan] * 21))
+    assert position_of(odom) is None
