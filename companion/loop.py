@@ -395,9 +395,7 @@ class ControlLoop:
                     a.health.tick(s.t_rx, now)
                     a.health.telemetry_age.add(now - a.autopilot.unix(s.boot_us))
                     if a.health.ticks % FORMATION_ERROR_EVERY == 0 and a.flight.phase == Phase.FLYING:
-                        h, _ = a.plans.formation.offsets(t.t_p)
-                        x0, _ = a.plans.leader_state(t.t_p)
-                        err = t.xhat[9:12] - h[a.id - 1, 9:12] - x0[9:12]
+                        err = t.xhat[9:12] - t.h[9:12] - t.x0[9:12]  # from its place now (its own reference)
                         a.health.formation_error.add(float(np.sqrt(err @ err)))
                 except Exception:
                     a.tick_failed()
