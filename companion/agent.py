@@ -115,6 +115,8 @@ class Agent:
         self.autopilot = Autopilot(self.id, opts.fc_url, self.log, self._fc_state)
         self.autopilot.link.after_read = lambda: host.loop_ctl.due(self)
         self.gcs = GroundStation(self, opts.gcs_url, key)
+        for link in (self.autopilot.link, self.gcs.link):  # (a serial port that failed, and is back)
+            link.on_event = lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING)
         self.plans = Plans(self.id, self.store, self.autopilot.clock, self.log, self._reopen, self._schedule,
                            lambda: self.flight.in_flight)
         self.plans.clock_check = self.start_clock_problem

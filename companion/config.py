@@ -60,6 +60,7 @@ _KEYS: dict[str, tuple[str, str]] = {
 }
 REQUIRED = ("id", "fc", "gcs")
 _URL_PREFIXES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:")
+SERIAL_PREFIX = "serial://"  # MAVSDK's form of a serial port
 
 
 class ConfigError(ValueError):
@@ -189,20 +190,24 @@ def parse_link(text: str, what: str = "link") -> tuple[str, str, int | None]:
             if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
                 raise ValueError(f"--{what} {text!r}: expected {prefix}HOST:PORT with a port number 0-65535")
             return ("udp" if prefix.startswith("udp") else "tcp"), host, int(port)
-    if text.startswith("/") or re.fullmatch(r"COM\d+([,:]\d+)?", text, re.IGNORECASE):
+    if low.startswith(SERIAL_PREFIX) or text.startswith("/") or re.fullmatch(r"COM\d+([,:]\d+)?", text, re.IGNORECASE):
         device, baud = _split_serial(text)
         if baud is not None and baud <= 0:
             raise ValueError(f"--{what} {text!r}: the baud rate must be positive")
         return "serial", device, baud
-    raise ValueError(f"--{what} {text!r}: expected a serial port (/dev/ttyAMA0:921600) or a pymavlink URL "
+    raise ValueError(f"--{what} {text!r}: expected a serial port (/dev/ttyACM0:921600, /dev/ttyACM0,921600 or "
+                     f"serial:///dev/ttyACM0:921600) or a pymavlink URL "
                      f"({', '.join(p + 'HOST:PORT' for p in ('udpin:', 'udpout:', 'tcp:'))})")
 
 
 def _split_serial(text: str) -> tuple[str, int | None]:
-    m = re.fullmatch(r"(.+?)[,:](\d+)", text.strip())
-    if m and not os.path.exists(text.strip()):
+    text = text.strip()
+    if text.lower().startswith(SERIAL_PREFIX):  # MAVSDK's serial:///dev/ttyACM0:921600
+        text = text[len(SERIAL_PREFIX):]
+    m = re.fullmatch(r"(.+?)[,:](\d+)", text)
+    if m and not os.path.exists(text):
         return m.group(1), int(m.group(2))
-    return text.strip(), None
+    return text, None
 
 
 # -- --check ----------------------------------------------------------------------------------

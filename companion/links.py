@@ -9,11 +9,19 @@ its counters (``refused_*``), not as bad data.
 On UDP links every datagram carries the kernel's receive time (SO_TIMESTAMPNS), so the time a
 sample "arrived" includes the wait before the process got to read it; other transports fall back
 to the time of the read. All receive times are Unix time [s].
+
+A serial port (pymavlink's ``DEVICE,BAUD``, opened through pyserial) is a byte stream: frames are
+parsed across reads. Nothing on it blocks the loop: a frame the port's output buffer cannot take
+whole is dropped and counted (``drop_tx_full``; the line is over its budget). A port that fails
+(a USB flight controller unplugged: readable, but no data; or a read or write error) is closed
+once, said once through ``on_event``, and opened again every REOPEN_EVERY_S until it is back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
+import os
 import socket
 import struct
 import time
@@ -34,6 +42,11 @@ MAX_DATAGRAM = 65535
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python does not export it
 _TIMESPEC = struct.Struct("@qq")
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
+REOPEN_EVERY_S = 1.0
+SERIAL_TX_QUEUE_BYTES = 4096
+"""A frame that would queue more than this on a serial port is dropped (at 921600 baud, 44 ms of
+line; the loop sends a command every 5 ms)."""
+"""A serial port that failed is tried again this often [s, wall]."""
 
 
 class MavLink:
@@ -48,25 +61,43 @@ class MavLink:
         self._on_receive: Callable | None = None
         self.after_read: Callable[[], None] | None = None
         """Called once everything waiting has been read (e.g. to act on the newest sample only)."""
+        self.on_event: Callable[[str], None] = lambda text: None
+        """Told, in one line, that a serial port failed and that it is back."""
         self._datagrams = False
+        self._serial = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._reopen: asyncio.TimerHandle | None = None
+        self._down = False
+        """Said lost, and no frame has come since."""
+
+    @property
+    def up(self) -> bool:
+        return self.conn is not None
 
     def open(self, loop: asyncio.AbstractEventLoop, on_receive: Callable) -> None:
+        self._loop, self._on_receive = loop, on_receive
+        self._connect()
+
+    def _connect(self) -> None:
         try:
             self.conn = mavutil.mavlink_connection(self.url, source_system=self.codec.srcSystem,
                                                    source_component=self.codec.srcComponent,
                                                    udp_timeout=self.client_timeout_s)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError) as exc:  # (pyserial's SerialException is an OSError)
             raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
         self._datagrams = isinstance(self.conn, mavutil.mavudp)
+        self._serial = isinstance(self.conn, mavutil.mavserial)
         if self._datagrams:
             try:
                 self.conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             except OSError:  # not Linux: receive times are read times
                 pass
-        self._on_receive = on_receive
-        loop.add_reader(self.conn.fd, self._readable)
+        self._loop.add_reader(self.conn.fd, self._readable)
 
     def close(self) -> None:
+        if self._reopen is not None:
+            self._reopen.cancel()
+            self._reopen = None
         if self.conn is not None:
             try:
                 asyncio.get_event_loop().remove_reader(self.conn.fd)
@@ -84,10 +115,14 @@ class MavLink:
 
     def _read_all(self) -> None:
         for _ in range(MAX_READS_PER_WAKEUP):
+            if self.conn is None:  # (lost while what was read was handled)
+                return
             try:
                 data, t_rx = self._recv_datagram() if self._datagrams else (self.conn.recv(MAX_DATAGRAM), time.time())
-            except OSError:
+            except OSError as exc:
                 self.counters["read_errors"] += 1
+                if self._serial:
+                    self._lost(exc)
                 return
             if not data:
                 return
@@ -109,6 +144,9 @@ class MavLink:
                 else:
                     good.append(m)
             self.counters["rx"] += len(good)
+            if good and self._down:
+                self._down = False
+                self.on_event(f"{self.name} link {self.url} open again, frames coming")
             if good:
                 self._on_receive(self, good, t_rx)
 
@@ -137,12 +175,74 @@ class MavLink:
     def write(self, data: bytes) -> None:
         """Send raw frames (e.g. forwarded ones, unchanged)."""
         if self.conn is None:
+            self.counters["drop_link_down"] += 1
+            return
+        if self._serial:
+            self._write_serial(data)
             return
         try:
             self.conn.write(data)
             self.counters["tx"] += 1
         except OSError:
             self.counters["write_errors"] += 1
+
+    def _write_serial(self, data: bytes) -> None:
+        """To the port's non-blocking descriptor (pymavlink's write would wait for room, and say a
+        failure on stdout): whole frames or none."""
+        if self._queued() + len(data) > SERIAL_TX_QUEUE_BYTES:
+            self.counters["drop_tx_full"] += 1
+            return
+        try:
+            n = os.write(self.conn.fd, data)
+        except BlockingIOError:
+            self.counters["drop_tx_full"] += 1
+            return
+        except OSError as exc:
+            if exc.errno == errno.EINTR:
+                self.counters["drop_tx_full"] += 1
+                return
+            self.counters["write_errors"] += 1
+            self._lost(exc)
+            return
+        self.counters["tx"] += 1
+        if n < len(data):
+            self.counters["tx_short"] += 1
+
+    def _queued(self) -> int:
+        """Bytes waiting in the port's output buffer (0 where the driver does not say)."""
+        try:
+            return self.conn.port.out_waiting
+        except OSError:
+            return 0
+
+    def _lost(self, exc: OSError) -> None:
+        """The serial port failed: close it, say so once, try it again every REOPEN_EVERY_S."""
+        self.counters["lost"] += 1
+        conn, self.conn = self.conn, None
+        try:
+            self._loop.remove_reader(conn.fd)
+        except (RuntimeError, ValueError):
+            pass
+        try:
+            conn.close()
+        except OSError:
+            pass
+        reset_parser(self.codec)
+        if not self._down:  # (a port that opens again but fails before a frame came is not news)
+            self._down = True
+            reason = "disconnected: readable, but no data" if "returned no data" in str(exc) else str(exc)
+            self.on_event(f"{self.name} link {self.url} lost ({reason}): opening it again every {REOPEN_EVERY_S:g} s")
+        self._reopen = self._loop.call_later(REOPEN_EVERY_S, self._try_reopen)
+
+    def _try_reopen(self) -> None:
+        self._reopen = None
+        try:
+            self._connect()
+        except OSError:
+            self.counters["reopen_failed"] += 1
+            self._reopen = self._loop.call_later(REOPEN_EVERY_S, self._try_reopen)
+            return
+        self.counters["reopened"] += 1
 
 
 class Router:

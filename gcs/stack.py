@@ -90,6 +90,10 @@ class Stack:
     sitl_base_port: int = 0
     """The SITL's first UDP port (0: any free ports). A fixed one lets a test kill the SITL and start
     it again on the same ports (``restart_sitl``), where the companions look for it."""
+    fc_links: dict[int, str] = field(default_factory=dict)
+    """The flight-controller link of agent i (e.g. a serial port) instead of its vehicle's companion
+    link in the SITL's manifest (set before the companions start: ``companions=False``, then
+    ``start_companion``)."""
     lockstep: bool = False
     """The SITL steps when every companion has answered (``sitl up --lockstep``): the stack runs on
     simulated time, as fast as the machine allows. ``start_at`` is then on that clock, and
@@ -179,7 +183,7 @@ class Stack:
         links = []
         for i in agents:
             v = self.manifest["vehicles"][i - 1]
-            links += ["--id", str(i), "--fc", v["links"]["companion"]["pymavlink"],
+            links += ["--id", str(i), "--fc", self.fc_links.get(i, v["links"]["companion"]["pymavlink"]),
                       "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}"]
         extra = [arg for i in agents for arg in self.companion_args.get(i, [])]
         return [sys.executable, "-m", "triswarm.companion.cli", *links,
