@@ -16,6 +16,7 @@ from triswarm.protocol.frames import DEFAULT_HOME
 
 from .errors import UserError, console, err_console, short_number, user_errors
 from .plan_cmd import plan_app
+from .scenarios import DEFAULT_PLAN, PlanArgument
 from .wind_options import Gusts, Turbulence, WindFrom, WindSpeed, wind_from_options
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
@@ -56,10 +57,10 @@ def _default_out(name: str) -> Path:
 
 @app.command()
 def sim(
-    scenario: Annotated[str, typer.Option(help="Built-in scenario name or path to a plan TOML file.")] = "paper-hexagon",
-    duration: Annotated[Optional[float], typer.Option(help="Simulated time [s] (default: the plan's duration_s, 60 s "
-                                                           "unless the plan says).")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<scenario>-<time>).")] = None,
+    plan_name: PlanArgument = DEFAULT_PLAN,
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Simulated time [s] (default: the plan's "
+                                                                             "duration_s, 60 s unless the plan says).")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<plan name>-<time>).")] = None,
     drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only; the circle grows "
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
@@ -90,7 +91,7 @@ def sim(
     from .scenarios import load_plan
 
     with user_errors():
-        _finite("duration", duration, positive=True)
+        _finite("duration-s", duration_s, positive=True)
         _finite("servo-delay-s", servo_delay_s, non_negative=True)
         _finite("max-rpm", max_rpm, positive=True)
         _finite("mismatch", mismatch)
@@ -100,9 +101,9 @@ def sim(
         _finite("attitude-bound-rad", attitude_bound_rad, positive=True)
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
-        plan = load_plan(scenario, drones)
+        plan = load_plan(plan_name, drones)
         wind = wind_from_options(plan.wind, wind_m_s, wind_from_deg, turbulence, gust)
-        duration = plan.duration_s if duration is None else duration
+        duration = plan.duration_s if duration_s is None else duration_s
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
                            wind=wind)
@@ -203,7 +204,7 @@ def sitl_up(
     bind: Annotated[str, typer.Option(help="Address to bind the UDP links to.")] = "127.0.0.1",
     spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
     stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Stop by itself after this simulated time [s].")] = None,
     param: Annotated[Optional[list[str]], typer.Option("--param", metavar="NAME=VALUE",
                                                        help="A parameter every vehicle starts with, e.g. "
                                                             "NOISE_POS_M=0.02 (repeat).")] = None,
@@ -222,7 +223,7 @@ def sitl_up(
     seed: Annotated[int, typer.Option(help="Seed for sensor noise and turbulence.")] = 0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
-    """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
+    """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration-s)."""
     import asyncio
 
     from triswarm.companion.state import write_json_atomically
@@ -234,7 +235,7 @@ def sitl_up(
         _finite("rate-hz", rate_hz, non_negative=True)
         _finite("physics-hz", physics_hz, positive=True)
         _finite("spacing-m", spacing_m, positive=True)
-        _finite("duration", duration, positive=True)
+        _finite("duration-s", duration_s, positive=True)
         _finite("lockstep-timeout-s", lockstep_timeout_s, positive=True)
         _finite("max-rtf", max_rtf, positive=True)
         if max_rtf is not None and not lockstep:
@@ -253,7 +254,7 @@ def sitl_up(
             except ValueError:
                 raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
         opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
-                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
+                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration_s, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust))
 

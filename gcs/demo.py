@@ -29,7 +29,7 @@ from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 from .errors import console, err_console, user_errors
 from .link import GroundLink
 from .plot_cmd import plot
-from .scenarios import read_plan_spec, plan_text
+from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
 from .stack import Stack, StackError
 from .swarm_cmd import command_all, start_all, upload_all
 
@@ -53,7 +53,7 @@ def _wait(what: str, cond, timeout_s: float) -> None:
 
 
 def demo(
-    plan_name: Annotated[str, typer.Option("--plan", help="Built-in scenario or plan file.")] = "paper-hexagon",
+    plan_name: PlanArgument = DEFAULT_PLAN,
     duration_s: Annotated[float, typer.Option("--duration-s", help="Plan time to fly before landing [s].")] = 50.0,
     out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Fly on simulated time (sitl up --lockstep): as fast as this machine "

@@ -241,7 +241,7 @@ def validate_target(t: Target) -> None:
     if not re.fullmatch(r"(?:[A-Za-z0-9._-]+@)?[A-Za-z0-9._:\[\]-]+", t.host):
         raise DeployError(f"--host {t.host!r}: expected USER@HOST or HOST")
     if not 1 <= t.drone_id <= 255:
-        raise DeployError(f"--drone-id must be between 1 and 255, got {t.drone_id}")
+        raise DeployError(f"--drone must be between 1 and 255, got {t.drone_id}")
     if t.port is not None and not 1 <= t.port <= 65535:
         raise DeployError(f"--ssh-port must be between 1 and 65535, got {t.port}")
     if not re.fullmatch(r"/[A-Za-z0-9._/+-]*", t.root):

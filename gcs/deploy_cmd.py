@@ -25,7 +25,8 @@ _STYLE = {"installed": "green", "unchanged": "green", "rolled back": "yellow", "
 
 def deploy(
     host: Annotated[Optional[str], typer.Option(help="The target, USER@HOST (or HOST with ssh's default user).")] = None,
-    drone_id: Annotated[Optional[int], typer.Option("--drone-id", help="The drone's id (1-255): the configuration's id.")] = None,
+    drone: Annotated[Optional[int], typer.Option("--drone", metavar="N", help="The drone's id (1-255): the "
+                                                                              "configuration's id.")] = None,
     config: Annotated[Optional[Path], typer.Option(help="The drone's configuration (TOML, as deploy/drone.example.toml, "
                                                         "whose values are the default). Files it names by relative "
                                                         "path are shipped along.")] = None,
@@ -58,7 +59,7 @@ def deploy(
     """Install the companion on onboard computers over SSH: wheel, configuration, key, systemd unit; then check."""
     with user_errors():
         if (host is None) == (inventory is None):
-            raise DeployError("give either --host USER@HOST with --drone-id, or --inventory FILE")
+            raise DeployError("give either --host USER@HOST with --drone N, or --inventory FILE")
         if jobs < 1:
             raise DeployError(f"--jobs must be at least 1, got {jobs}")
         if wheel is not None and rollback:
@@ -69,9 +70,9 @@ def deploy(
         if inventory is not None:
             targets = load_inventory(inventory, Target(host="-", drone_id=1, **base))
         else:
-            if drone_id is None:
-                raise DeployError("--host needs --drone-id I")
-            targets = [Target(host=host, drone_id=drone_id, **base)]
+            if drone is None:
+                raise DeployError("--host needs --drone N")
+            targets = [Target(host=host, drone_id=drone, **base)]
             validate_target(targets[0])
         outcomes = _run(targets, wheel=wheel, dry_run=dry_run, rollback=rollback, source=source, jobs=jobs)
     _report(outcomes)

@@ -5,7 +5,7 @@ Endpoints come from a swarm manifest (``swarm.json``, written by ``triswarm stac
 
     {"swarm": "paper-hexagon", "drones": [{"id": 1, "mavlink": "udpout:127.0.0.1:14601"}, ...]}
 
-or from ``--drone ID=URL`` (pymavlink connection strings).
+or from ``--endpoint ID=URL`` (pymavlink connection strings).
 
 With a signing key, every frame sent is signed (MAVLink 2 signing; the link id is this process's
 id modulo 256, so ground stations running at once are, but for a chance of 1/256, separate streams
@@ -37,7 +37,7 @@ class LinkError(Exception):
     """An endpoint that cannot be opened or a manifest that cannot be read (one sentence)."""
 
 
-def parse_endpoints(manifest: Path | None, drones: list[str] | None) -> dict[int, str]:
+def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> dict[int, str]:
     """Drone id -> pymavlink URL, from a manifest and/or ``ID=URL`` strings (these win)."""
     out: dict[int, str] = {}
     if manifest is not None:
@@ -49,13 +49,13 @@ def parse_endpoints(manifest: Path | None, drones: list[str] | None) -> dict[int
             raise LinkError(f"{manifest}: no such swarm manifest") from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise LinkError(f"{manifest}: not a swarm manifest ({exc.__class__.__name__}: {exc})") from None
-    for spec in drones or []:
+    for spec in endpoints or []:
         ident, sep, url = spec.partition("=")
         if not sep or not ident.strip().isdigit() or not 1 <= int(ident) <= 254 or not url:
-            raise LinkError(f"--drone {spec!r}: expected ID=URL with ID in 1..254, e.g. 1=udpout:127.0.0.1:14601")
+            raise LinkError(f"--endpoint {spec!r}: expected ID=URL with ID in 1..254, e.g. 1=udpout:127.0.0.1:14601")
         out[int(ident)] = url
     if not out:
-        raise LinkError("no drones: give --manifest (swarm.json) or --drone ID=URL")
+        raise LinkError("no drones: give --manifest (swarm.json) or --endpoint ID=URL")
     return out
 
 

@@ -318,7 +318,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             # (and through host B's router, whose agents 3 and 4 need 5 and 6 for a path in reverse-two-chain)
             watch_b = BusWatch(client_config(generated / "gcs.json5", routers["b"], tmp_path / "zenoh" / "gcs-b.json5"), rec.now)
             # the operator's monitor, from the root namespace to every companion's MAVLink link, all along
-            monitor = MonitorTables(triswarm("monitor", *[a for url in gcs_urls for a in ("--drone", url)],
+            monitor = MonitorTables(triswarm("monitor", *[a for url in gcs_urls for a in ("--endpoint", url)],
                                              "--rate-hz", "1", "--tlog", str(tmp_path / "gcs.tlog")), rec.now,
                                    tmp_path / "logs" / "monitor.txt")
             wait_plan(CUT_AT)

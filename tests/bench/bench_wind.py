@@ -82,7 +82,7 @@ def main() -> None:
     for label in args.scenarios.split(","):
         source, drones = SCENARIOS[label.strip()]
         plan = load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones)
-        scenario = f"--scenario {source}" + (f" --drones {drones}" if drones else "")
+        scenario = source + (f" --drones {drones}" if drones else "")
         print(f"\n### {label}: {plan.n_agents} drones, settled window from {plan.settled_from_s:g} s to "
               f"{plan.duration_s:g} s\n")
         print("| wind [m/s] | turbulence | gust | worst position [m] | worst attitude [rad] | command |")
