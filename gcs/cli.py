@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import sys
+import tempfile
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -48,6 +49,18 @@ def _finite(name: str, value: float | None, *, positive: bool = False, non_negat
         raise UserError(f"--{name} must be positive, got {value}")
     if non_negative and value < 0:
         raise UserError(f"--{name} must not be negative, got {value}")
+
+
+def _writable_folder(path: Path) -> None:
+    """Make the output folder ``path`` (--out) and check that files can be written in it; UserError if not."""
+    if path.exists() and not path.is_dir():
+        raise UserError(f"--out {path}: not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise UserError(f"--out {path}: cannot write in this folder ({exc.strerror})") from None
 
 
 def _default_out(name: str) -> Path:
@@ -94,7 +107,8 @@ def sim(
         _finite("duration-s", duration_s, positive=True)
         _finite("servo-delay-s", servo_delay_s, non_negative=True)
         _finite("max-rpm", max_rpm, positive=True)
-        _finite("mismatch", mismatch)
+        if not (math.isfinite(mismatch) and -50 < mismatch < 100):
+            raise UserError(f"--mismatch must be a percentage above -50 and below 100, got {mismatch}")
         _finite("physics-hz", physics_hz, positive=True)
         _finite("log-hz", log_hz, positive=True)
         _finite("position-bound-m", position_bound_m, positive=True)
@@ -103,6 +117,10 @@ def sim(
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(plan_name, drones)
         wind = wind_from_options(plan.wind, wind_m_s, wind_from_deg, turbulence, gust)
+        rate = plan.controller.rate_hz
+        steps = round(physics_hz / rate)
+        if steps < 1 or abs(steps * rate - physics_hz) > 1e-6 * physics_hz:
+            raise UserError(f"--physics-hz {physics_hz:g} must be a whole multiple of the plan's control rate {rate:g} Hz")
         duration = plan.duration_s if duration_s is None else duration_s
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
@@ -112,10 +130,7 @@ def sim(
         if problems and not force:
             raise UserError(f"{plan.source}: {problems[0]} (--force flies it anyway)")
         out_dir = out or _default_out(plan.name)
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"cannot create output folder {out_dir}: {exc.strerror}") from None
+        _writable_folder(out_dir)  # before the flight, not after it
 
     for problem in problems:
         err_console.print(f"triswarm: warning: {plan.source}: {problem}; flying it anyway (--force)", soft_wrap=True)
@@ -149,9 +164,15 @@ def sim(
         "mismatch_pct": mismatch, "seed": seed, "wind": None if wind is None else wind.describe(), "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
         "start_position_m": result.start_position_m.tolist(),
     }
-    report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run, per_drone=per_drone)
-    report.write_telemetry(out_dir / "telemetry.csv", result.t_s, result.position_m, result.euler_rad)
-    fig_paths = plots.make_figures(out_dir, plan, result.t_s, result.position_m, result.euler_rad, perf) if figures else []
+    with user_errors():
+        try:
+            report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run,
+                                 per_drone=per_drone)
+            report.write_telemetry(out_dir / "telemetry.csv", result.t_s, result.position_m, result.euler_rad)
+            fig_paths = plots.make_figures(out_dir, plan, result.t_s, result.position_m, result.euler_rad, perf) \
+                if figures else []
+        except OSError as exc:
+            raise UserError(f"{out_dir}: cannot write the outputs ({exc.strerror})") from None
 
     _print_result(plan, perf, per_drone, result, out_dir, fig_paths)
     if strict and not perf.within_bounds:
@@ -229,8 +250,17 @@ def sitl_up(
     from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
     from triswarm.sitl.lockstep import LockstepOptions
+    from triswarm.sitl.server import LinkOpenError
 
-    with user_errors():
+    def write(option: str, path: Path, data: dict) -> None:
+        try:
+            write_json_atomically(path, data)
+        except OSError as exc:
+            raise UserError(f"{option} {path}: cannot write it ({exc.strerror})") from None
+
+    with user_errors(LinkOpenError):
+        if n < 1:
+            raise UserError(f"-n must be at least 1, got {n}")
         _finite("speedup", speedup, positive=True)
         _finite("rate-hz", rate_hz, non_negative=True)
         _finite("physics-hz", physics_hz, positive=True)
@@ -253,13 +283,17 @@ def sitl_up(
                 params.append((name.strip().upper(), float(value)))
             except ValueError:
                 raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
-        opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
+        try:
+            home_lla = parse_home(home)
+        except ValueError as exc:  # not three numbers, or not a place on Earth
+            raise UserError(str(exc) if str(exc).startswith("--home") else f"--home {home}: {exc}") from None
+        opts = SitlOptions(n=n, home=home_lla, speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration_s, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust))
 
         def ready(m: dict) -> None:
-            write_json_atomically(manifest, m)
+            write("--manifest", manifest, m)
             if quiet:
                 return
             table = Table(title=f"{n} simulated tri-rotors, home {opts.home[0]:.6f}, {opts.home[1]:.6f}, "
@@ -276,12 +310,10 @@ def sitl_up(
             console.print("pymavlink: mavutil.mavlink_connection(<link>); MAVSDK: the same with udpout://. "
                           "Ctrl-C stops.", soft_wrap=True)
 
-        try:
-            result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
-        except OSError as exc:
-            raise UserError(str(exc)) from None
+        # (a --rate-hz or --param the vehicles refuse: ParameterError; a port that cannot be opened: LinkOpenError)
+        result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
         if stats is not None:
-            write_json_atomically(stats, result)
+            write("--stats", stats, result)
     if not quiet:
         dropped = [f"{v['sysid']}: {v['drops']}" for v in result["vehicles"] if v["drops"]]
         rtf = (result.get("lockstep") or {}).get("real_time_factor") or result["speedup_achieved"] or 0.0
@@ -311,6 +343,11 @@ def main() -> None:
     except KeyboardInterrupt:
         err_console.print("triswarm: interrupted")
         sys.exit(130)
+    except Exception:  # not a mistake in the command (those end in one sentence and exit status 2): a bug
+        sys.excepthook(*sys.exc_info())
+        err_console.print("triswarm: internal error: a bug in triswarm, not a mistake in the command "
+                          "(the traceback above says where)", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
 from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
-from .errors import console, err_console, user_errors
+from .errors import UserError, console, err_console, user_errors
 from .link import GroundLink
 from .plot_cmd import plot
 from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
@@ -62,6 +62,10 @@ def demo(
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
+        if not (math.isfinite(duration_s) and duration_s > 0):
+            raise UserError(f"--duration-s must be a positive number, got {duration_s}")
+        if agents_per_process < 0:
+            raise UserError(f"--agents-per-process must not be negative, got {agents_per_process}")
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)

@@ -265,7 +265,10 @@ def ensure_signing_key(path: Path, *, generate: bool, dry_run: bool, say: Callab
     if path.exists():
         from triswarm.companion.state import read_signing_key
 
-        read_signing_key(path)   # ValueError (one sentence) for a bad key
+        try:
+            read_signing_key(path)
+        except ValueError as exc:   # unreadable, or not a key (one sentence naming the file)
+            raise DeployError(f"signing key {exc}") from None
         return path.read_bytes()
     if not generate:
         raise DeployError(f"signing key {path}: no such file (generate_signing_key = true makes one)")

@@ -57,7 +57,7 @@ def deploy(
     source: Annotated[Path, typer.Option(help="The triswarm checkout to build and take deploy/ from.")] = SOURCE,
 ) -> None:
     """Install the companion on onboard computers over SSH: wheel, configuration, key, systemd unit; then check."""
-    with user_errors():
+    with user_errors(DeployError):
         if (host is None) == (inventory is None):
             raise DeployError("give either --host USER@HOST with --drone N, or --inventory FILE")
         if jobs < 1:
@@ -93,11 +93,8 @@ def _run(targets: list[Target], **kw) -> list[Outcome]:
         def say(text: str) -> None:
             bar.console.print(text, markup=False, highlight=False, soft_wrap=True)
 
-        try:
-            return deploy_all(targets, wheel_path=kw["wheel"], dry_run=kw["dry_run"], rollback=kw["rollback"],
-                              source=kw["source"], jobs=kw["jobs"], say=say, progress=progress)
-        except ValueError as exc:   # DeployError, a bad signing key
-            raise DeployError(str(exc)) from None
+        return deploy_all(targets, wheel_path=kw["wheel"], dry_run=kw["dry_run"], rollback=kw["rollback"],
+                          source=kw["source"], jobs=kw["jobs"], say=say, progress=progress)
 
 
 def _report(outcomes: list[Outcome]) -> None:

@@ -49,7 +49,10 @@ def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[i
     """The link to the selected drones, once each companion's heartbeat is heard (with
     ``require_all`` False, at once: a monitor shows the silent ones as lost)."""
     with user_errors():
-        key = None if signing_key is None else read_signing_key(signing_key)
+        try:
+            key = None if signing_key is None else read_signing_key(signing_key)
+        except ValueError as exc:  # unreadable, or not a key (a sentence naming the file)
+            raise UserError(f"--signing-key {exc}") from None
         try:
             endpoints = parse_endpoints(manifest, endpoint)
         except LinkError as exc:
@@ -60,7 +63,7 @@ def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[i
         chosen = sorted(set(drones or endpoints))
         try:
             link = GroundLink({i: endpoints[i] for i in chosen}, tlog=tlog, signing_key=key)
-        except (LinkError, OSError) as exc:
+        except LinkError as exc:
             raise UserError(str(exc)) from None
     with link:
         if not require_all:
@@ -209,7 +212,10 @@ def download(
     if out is None:
         console.print(text, markup=False, highlight=False)
     else:
-        out.write_text(text, encoding="utf-8")
+        try:
+            out.write_text(text, encoding="utf-8")
+        except OSError as exc:
+            raise typer.Exit(_refuse(f"--out {out}: cannot write the plan ({exc.strerror})")) from None
         console.print(f"drone {drone}: plan {spec.get('name', '?')} ({pid:08x}, {len(items)} items) written to {out}")
 
 
