@@ -163,3 +163,21 @@ def test_the_cli_reference_is_the_clis_own_help():
     r = subprocess.run([sys.executable, str(root / "tools" / "gen_cli_docs.py"), "--check"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_bug_is_not_called_a_user_error(monkeypatch, capsys):
+    """A ValueError or OSError from inside (not from reading what the user wrote) is shown as a bug: its
+    traceback and exit status 1, never "error:" and exit status 2."""
+    from triswarm.gcs import cli, scenarios
+
+    for exc in (ValueError("a bug inside"), OSError(5, "a fault inside")):
+        def broken(*args, _exc=exc, **kwargs):
+            raise _exc
+
+        monkeypatch.setattr(scenarios, "load_plan", broken)
+        monkeypatch.setattr(sys, "argv", ["triswarm", "sim", "--duration-s", "1"])
+        with pytest.raises(SystemExit) as got:
+            cli.main()
+        err = capsys.readouterr().err
+        assert got.value.code == 1 and "Traceback" in err and str(exc) in err, err
+        assert "triswarm: internal error: a bug in triswarm" in err and "triswarm: error:" not in err, err

@@ -309,7 +309,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
                     spawn(net.exec_prefix(h), f"companion-{i}", [
                         sys.executable, "-m", "triswarm.companion.cli", "--id", str(i),
                         "--fc", vehicle[i]["links"]["companion"]["pymavlink"], "--gcs", f"udpin:{net.address[h]}:{14550 + i}",
-                        "--plan", str(PAPER_PLAN_FILE), "--autostart", "--start-at", f"{start:.3f}",
+                        str(PAPER_PLAN_FILE), "--autostart", "--start-at", f"{start:.3f}",
                         "--zenoh-config", str(agent_cfg),
                         "--rate-hz", str(RATE_HZ), "--state-dir", str(tmp_path / "state" / str(i)), "--stats", str(tmp_path / "stats" / f"{i}.json")])
             # the root namespace: the flight controllers' own telemetry, the bus via router A
