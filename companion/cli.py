@@ -27,7 +27,7 @@ def companion(
     fc: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Flight-controller link (pymavlink connection string, or a serial "
                                                          "port DEVICE:BAUD).")] = None,
     gcs: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Ground-station link (pymavlink connection string).")] = None,
-    plan: Annotated[Optional[Path], typer.Argument(metavar="[PLAN]", show_default=False,
+    plan: Annotated[Optional[Path], typer.Argument(metavar="PLAN", show_default=False,
                                                    help="A plan file (TOML) to load at start; without one, the "
                                                         "ground station uploads it (triswarm plan upload).")] = None,
     plan_option: Annotated[Optional[Path], typer.Option("--plan", hidden=True,
