@@ -35,6 +35,29 @@ def test_short_sim_writes_summary_telemetry_and_figures(tmp_path):
     assert (len(rows) - 1) / 6 / 4.0 >= 20  # at least 20 rows per second per drone
     for name in ("fig7_trajectories_3d.png", "fig9_attitude.png", "fig10_position.png", "formation_error.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a flight that ends before the settled window (25 s for the case study) is judged over its second half
+    assert summary["performance"]["window_start_s"] == pytest.approx(2.0)
+
+
+def test_sim_judges_over_the_settled_window_its_strict_help_names(tmp_path):
+    """--strict's help: the window starts at the entry's end + check.settle_s. A plan whose entry ends at
+    2 s and settles for 1 s, flown 4 s: judged over [3 s, end], and --strict's exit status says the verdict."""
+    from triswarm.gcs.scenarios import plan_text
+
+    text = plan_text("paper-hexagon").replace("climb_s = 3.0", "climb_s = 1.0").replace("blend_s = 12.0", "blend_s = 1.0")
+    plan = tmp_path / "quick.toml"
+    plan.write_text("duration_s = 4.0\n" + text + "\n[check]\nsettle_s = 1.0\n")
+    help_text = triswarm("sim", "--help").stdout
+    assert "from the entry's end + check.settle_s" in " ".join(help_text.split())
+    for bound_m, status in ((0.10, None), (1e-9, 1)):
+        out = tmp_path / f"run-{bound_m}"
+        r = triswarm("sim", str(plan), "--out", str(out), "--no-figures", "--strict", "--position-bound-m", str(bound_m))
+        perf = json.loads((out / "summary.json").read_text())["performance"]
+        assert perf["window_start_s"] == pytest.approx(3.0), perf
+        within = perf["worst_position_error_m"] <= bound_m and perf["worst_attitude_error_rad"] <= 0.02
+        assert r.returncode == (0 if within else 1), (r.returncode, perf, r.stderr)
+        assert status is None or r.returncode == status
+        assert "worst errors over [3 s, end]" in r.stdout
 
 
 def bad(tmp_path, *args):
