@@ -1,8 +1,7 @@
 """``triswarm deploy``: the command line of gcs/deploy.py.
 
-Also runs on its own, before it is registered in gcs/cli.py: ``python -m triswarm.gcs.deploy_cmd ...``. It
-reports like the rest of the CLI (gcs/errors.py) without importing it: that module brings the control design
-(scipy, python-control), a second and a half at every start, and deploy needs none of it.
+Also runs on its own: ``python -m triswarm.gcs.deploy_cmd ...``. It reports like the rest of the CLI
+(gcs/errors.py): a mistake in what was asked (DeployError) in one sentence and exit status 2.
 """
 
 from __future__ import annotations
@@ -15,10 +14,9 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.text import Text
 
+from .deploy import Outcome, deploy_all
+from .deploy_release import DEFAULT_ROOT, SOURCE, DeployError, Target, load_inventory, validate_target
 from .errors import console, user_errors
-from .deploy import DEFAULT_ROOT, SOURCE, DeployError, Outcome, Target, deploy_all, load_inventory, validate_target
-
-
 
 _STYLE = {"installed": "green", "unchanged": "green", "rolled back": "yellow", "failed": "red", "plan": "cyan"}
 

@@ -31,7 +31,7 @@ from types import SimpleNamespace
 import pytest
 
 from triswarm.companion.config import ConfigError, load_config, resolve_options, run_checks
-from triswarm.gcs import deploy as dp
+from triswarm.gcs import deploy_release as dp
 from triswarm.gcs.stack import stop_in_turn
 
 from .needs import missing
