@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/triswarm demo --plan examples/paper-hexagon.toml
+	$(VENV)/bin/triswarm demo examples/paper-hexagon.toml
 
 # Two workers for everything on simulated time or with no clock at all; beside them, ahead of them
 # (niceness -10, as root), the few tests that judge something on the wall clock (tests/run_suite.py).
@@ -50,7 +50,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_sim.py
 	$(ONE_CORE) $(PY) tests/bench/bench_formations.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
-	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 6 --seconds 50
+	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 6 --duration-s 50
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 0
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 1 --sizes 2,4,6,8
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py

@@ -27,7 +27,11 @@ def companion(
     fc: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Flight-controller link (pymavlink connection string, or a serial "
                                                          "port DEVICE:BAUD).")] = None,
     gcs: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Ground-station link (pymavlink connection string).")] = None,
-    plan: Annotated[Optional[Path], typer.Option(help="Plan file (TOML).")] = None,
+    plan: Annotated[Optional[Path], typer.Argument(metavar="PLAN", show_default=False,
+                                                   help="A plan file (TOML) to load at start; without one, the "
+                                                        "ground station uploads it (triswarm plan upload).")] = None,
+    plan_option: Annotated[Optional[Path], typer.Option("--plan", hidden=True,
+                                                        help="Deprecated spelling of PLAN.")] = None,
     autostart: Annotated[bool, typer.Option(help="Arm, take off and start the plan at the common start time.")] = False,
     start_at: Annotated[Optional[float], typer.Option(help="Common start time [s since the Unix epoch] "
                                                            "(default with --autostart: the next multiple of 10 s, 5 s ahead).")] = None,
@@ -53,26 +57,36 @@ def companion(
                                              "Zenoh, the signing key and the state folder, one line each; exit 0 or 1.")] = False,
 ) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
-    from .config import explicit_options, link_url, resolve_options, run_checks
+    from .config import ConfigError, explicit_options, link_url, resolve_options, run_checks
 
     agents = [(i, f, g) for i, f, g in zip(id or [], fc or [], gcs or [])]
     params = dict(ctx.params, id=(id or [None])[0], fc=(fc or [None])[0], gcs=(gcs or [None])[0])
+    given = explicit_options(ctx)
+    del params["plan_option"]
+    if plan_option is not None:  # the old spelling, kept for one release
+        print("triswarm-companion: warning: --plan FILE is deprecated and goes in the next release: give the plan "
+              "as the positional PLAN", file=sys.stderr)
+        if plan is not None:
+            print("triswarm-companion: error: give the plan once: PLAN or --plan, not both", file=sys.stderr)
+            raise typer.Exit(code=2)
+        params["plan"] = plan_option
+        given = (given - {"plan_option"}) | {"plan"}
     if check:
-        raise typer.Exit(code=run_checks(config, params, explicit_options(ctx)))
+        raise typer.Exit(code=run_checks(config, params, given))
     try:
         if len(id or []) > 1 or len(fc or []) > 1 or len(gcs or []) > 1:
             if not len(id or []) == len(fc or []) == len(gcs or []):
-                raise ValueError("several drones need one --fc and one --gcs for each --id, in the same order")
+                raise ConfigError("several drones need one --fc and one --gcs for each --id, in the same order")
             if config is not None:
-                raise ValueError("--config describes one drone: give several drones their options on the command line")
+                raise ConfigError("--config describes one drone: give several drones their options on the command line")
             if len({i for i, _, _ in agents}) != len(agents):
-                raise ValueError("every --id must be a different drone")
-        o = resolve_options(config, params, explicit_options(ctx))
+                raise ConfigError("every --id must be a different drone")
+        o = resolve_options(config, params, given)
         agents = [(i, link_url(f, "fc"), link_url(g, "gcs")) for i, f, g in agents[1:]]
         for i, _, _ in agents:
             if not 1 <= i <= 255:
-                raise ValueError(f"--id must be a MAVLink system id between 1 and 255, got {i}")
-    except ValueError as exc:
+                raise ConfigError(f"--id must be a MAVLink system id between 1 and 255, got {i}")
+    except ConfigError as exc:  # what the operator wrote (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
     id, fc, gcs, plan, autostart, start_at = o["id"], o["fc"], o["gcs"], o["plan"], o["autostart"], o["start_at"]

@@ -64,7 +64,8 @@ SERIAL_PREFIX = "serial://"  # MAVSDK's form of a serial port
 
 
 class ConfigError(ValueError):
-    """A configuration file that cannot be used (one sentence)."""
+    """What the operator wrote (an option, a link, the configuration file) that cannot be used: one
+    sentence naming it. The companion's CLI reports these, and only these, as the user's mistake."""
 
 
 def load_config(path: Path) -> dict[str, Any]:
@@ -154,15 +155,15 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
     for name in REQUIRED:
         if values.get(name) is None:
             where = f" or set {name} in {config_path}" if config_path is not None else " (or use --config FILE)"
-            raise ValueError(f"--{name} is missing: give it{where}")
+            raise ConfigError(f"--{name} is missing: give it{where}")
     if not 1 <= values["id"] <= 255:
-        raise ValueError(f"--id must be a MAVLink system id between 1 and 255, got {values['id']}")
+        raise ConfigError(f"--id must be a MAVLink system id between 1 and 255, got {values['id']}")
     if not (math.isfinite(values["rate_hz"]) and 1.0 <= values["rate_hz"] <= 2000.0):
-        raise ValueError(f"--rate-hz must be between 1 and 2000, got {values['rate_hz']}")
+        raise ConfigError(f"--rate-hz must be between 1 and 2000, got {values['rate_hz']}")
     if values.get("start_at") is not None and not math.isfinite(values["start_at"]):
-        raise ValueError(f"--start-at must be a finite number of seconds, got {values['start_at']}")
+        raise ConfigError(f"--start-at must be a finite number of seconds, got {values['start_at']}")
     if values.get("zenoh_mode") not in ("peer", "client"):
-        raise ValueError(f"--zenoh-mode must be peer or client, got {values.get('zenoh_mode')!r}")
+        raise ConfigError(f"--zenoh-mode must be peer or client, got {values.get('zenoh_mode')!r}")
     values["fc"] = link_url(values["fc"], "fc")
     values["gcs"] = link_url(values["gcs"], "gcs")
     return values
@@ -171,7 +172,7 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
 def link_url(text: str, what: str = "link") -> str:
     """A MAVLink link as pymavlink wants it. A serial port may be written DEVICE:BAUD (as in the
     per-drone configuration) or DEVICE,BAUD (pymavlink's own form); both become DEVICE,BAUD.
-    ValueError for a link that does not parse."""
+    ConfigError for a link that does not parse."""
     kind, _, _ = parse_link(text, what)
     if kind == "serial":
         device, baud = _split_serial(text)
@@ -188,16 +189,16 @@ def parse_link(text: str, what: str = "link") -> tuple[str, str, int | None]:
             rest = text[len(prefix):]
             host, sep, port = rest.rpartition(":")
             if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-                raise ValueError(f"--{what} {text!r}: expected {prefix}HOST:PORT with a port number 0-65535")
+                raise ConfigError(f"--{what} {text!r}: expected {prefix}HOST:PORT with a port number 0-65535")
             return ("udp" if prefix.startswith("udp") else "tcp"), host, int(port)
     if low.startswith(SERIAL_PREFIX) or text.startswith("/") or re.fullmatch(r"COM\d+([,:]\d+)?", text, re.IGNORECASE):
         device, baud = _split_serial(text)
         if baud is not None and baud <= 0:
-            raise ValueError(f"--{what} {text!r}: the baud rate must be positive")
+            raise ConfigError(f"--{what} {text!r}: the baud rate must be positive")
         return "serial", device, baud
-    raise ValueError(f"--{what} {text!r}: expected a serial port (/dev/ttyACM0:921600, /dev/ttyACM0,921600 or "
-                     f"serial:///dev/ttyACM0:921600) or a pymavlink URL "
-                     f"({', '.join(p + 'HOST:PORT' for p in ('udpin:', 'udpout:', 'tcp:'))})")
+    raise ConfigError(f"--{what} {text!r}: expected a serial port (/dev/ttyACM0:921600, /dev/ttyACM0,921600 or "
+                      f"serial:///dev/ttyACM0:921600) or a pymavlink URL "
+                      f"({', '.join(p + 'HOST:PORT' for p in ('udpin:', 'udpout:', 'tcp:'))})")
 
 
 def _split_serial(text: str) -> tuple[str, int | None]:
@@ -238,7 +239,7 @@ def run_checks(config_path: Path | None, params: dict[str, Any], given: set[str]
         return 1
     try:
         v = resolve_options(config_path, params, given)
-    except ValueError as exc:
+    except ConfigError as exc:
         c.fail("config", str(exc))
         return 1
     c.ok("config", f"{config_path} (drone {v['id']})")
@@ -289,7 +290,7 @@ def _zenoh_check_config(v: dict[str, Any]):
         try:
             cfg = tune(zenoh.Config.from_file(str(v["zenoh_config"])))
         except Exception as exc:  # zenoh's own error type for a bad file
-            raise ValueError(f"{v['zenoh_config']}: not a usable Zenoh configuration ({exc})") from None
+            raise ConfigError(f"{v['zenoh_config']}: not a usable Zenoh configuration ({exc})") from None
         mode = json.loads(cfg.get_json("mode")) if _has(cfg, "mode") else "peer"
         connect = json.loads(cfg.get_json("connect/endpoints")) if _has(cfg, "connect/endpoints") else []
         source = str(v["zenoh_config"])
@@ -318,7 +319,7 @@ def _has(cfg, key: str) -> bool:
 def _check_zenoh(c: Checks, v: dict[str, Any]) -> None:
     try:
         cfg, mode, connect, source = _zenoh_check_config(v)
-    except ValueError as exc:
+    except ConfigError as exc:
         c.fail("zenoh", str(exc))
         return
     except ImportError as exc:

@@ -2,7 +2,7 @@
 received and waiting for its start, a plan to put in force in flight, and the operator's leader
 commands.
 
-Plans come from a file (``--plan``) or up the ground-station link (the mission protocol,
+Plans come from a file (the positional ``PLAN``) or up the ground-station link (the mission protocol,
 ``plan_server.py``). An uploaded plan is checked as ``triswarm plan check`` checks it (but the
 flight), off the loop, and staged; MAV_CMD_TRISWARM_PLAN_START puts it in force from a start time
 common to the swarm, or, in flight, switches to it at that time if it changes only the formation.

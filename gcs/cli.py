@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import sys
+import tempfile
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -16,6 +17,7 @@ from triswarm.protocol.frames import DEFAULT_HOME
 
 from .errors import UserError, console, err_console, short_number, user_errors
 from .plan_cmd import plan_app
+from .scenarios import DEFAULT_PLAN, PlanArgument
 from .wind_options import Gusts, Turbulence, WindFrom, WindSpeed, wind_from_options
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
@@ -49,6 +51,18 @@ def _finite(name: str, value: float | None, *, positive: bool = False, non_negat
         raise UserError(f"--{name} must not be negative, got {value}")
 
 
+def _writable_folder(path: Path) -> None:
+    """Make the output folder ``path`` (--out) and check that files can be written in it; UserError if not."""
+    if path.exists() and not path.is_dir():
+        raise UserError(f"--out {path}: not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise UserError(f"--out {path}: cannot write in this folder ({exc.strerror})") from None
+
+
 def _default_out(name: str) -> Path:
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return Path("runs") / f"sim-{name}-{stamp}"
@@ -56,10 +70,10 @@ def _default_out(name: str) -> Path:
 
 @app.command()
 def sim(
-    scenario: Annotated[str, typer.Option(help="Built-in scenario name or path to a plan TOML file.")] = "paper-hexagon",
-    duration: Annotated[Optional[float], typer.Option(help="Simulated time [s] (default: the plan's duration_s, 60 s "
-                                                           "unless the plan says).")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<scenario>-<time>).")] = None,
+    plan_name: PlanArgument = DEFAULT_PLAN,
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Simulated time [s] (default: the plan's "
+                                                                             "duration_s, 60 s unless the plan says).")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Output folder (default runs/sim-<plan name>-<time>).")] = None,
     drones: Annotated[Optional[int], typer.Option(help="Number of drones (rotating-polygon plans only; the circle grows "
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
@@ -90,19 +104,24 @@ def sim(
     from .scenarios import load_plan
 
     with user_errors():
-        _finite("duration", duration, positive=True)
+        _finite("duration-s", duration_s, positive=True)
         _finite("servo-delay-s", servo_delay_s, non_negative=True)
         _finite("max-rpm", max_rpm, positive=True)
-        _finite("mismatch", mismatch)
+        if not (math.isfinite(mismatch) and -50 < mismatch < 100):
+            raise UserError(f"--mismatch must be a percentage above -50 and below 100, got {mismatch}")
         _finite("physics-hz", physics_hz, positive=True)
         _finite("log-hz", log_hz, positive=True)
         _finite("position-bound-m", position_bound_m, positive=True)
         _finite("attitude-bound-rad", attitude_bound_rad, positive=True)
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
-        plan = load_plan(scenario, drones)
+        plan = load_plan(plan_name, drones)
         wind = wind_from_options(plan.wind, wind_m_s, wind_from_deg, turbulence, gust)
-        duration = plan.duration_s if duration is None else duration
+        rate = plan.controller.rate_hz
+        steps = round(physics_hz / rate)
+        if steps < 1 or abs(steps * rate - physics_hz) > 1e-6 * physics_hz:
+            raise UserError(f"--physics-hz {physics_hz:g} must be a whole multiple of the plan's control rate {rate:g} Hz")
+        duration = plan.duration_s if duration_s is None else duration_s
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
                            wind=wind)
@@ -111,10 +130,7 @@ def sim(
         if problems and not force:
             raise UserError(f"{plan.source}: {problems[0]} (--force flies it anyway)")
         out_dir = out or _default_out(plan.name)
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"cannot create output folder {out_dir}: {exc.strerror}") from None
+        _writable_folder(out_dir)  # before the flight, not after it
 
     for problem in problems:
         err_console.print(f"triswarm: warning: {plan.source}: {problem}; flying it anyway (--force)", soft_wrap=True)
@@ -148,9 +164,15 @@ def sim(
         "mismatch_pct": mismatch, "seed": seed, "wind": None if wind is None else wind.describe(), "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
         "start_position_m": result.start_position_m.tolist(),
     }
-    report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run, per_drone=per_drone)
-    report.write_telemetry(out_dir / "telemetry.csv", result.t_s, result.position_m, result.euler_rad)
-    fig_paths = plots.make_figures(out_dir, plan, result.t_s, result.position_m, result.euler_rad, perf) if figures else []
+    with user_errors():
+        try:
+            report.write_summary(out_dir / "summary.json", plan=plan, design=design, performance=perf, run=run,
+                                 per_drone=per_drone)
+            report.write_telemetry(out_dir / "telemetry.csv", result.t_s, result.position_m, result.euler_rad)
+            fig_paths = plots.make_figures(out_dir, plan, result.t_s, result.position_m, result.euler_rad, perf) \
+                if figures else []
+        except OSError as exc:
+            raise UserError(f"{out_dir}: cannot write the outputs ({exc.strerror})") from None
 
     _print_result(plan, perf, per_drone, result, out_dir, fig_paths)
     if strict and not perf.within_bounds:
@@ -203,7 +225,7 @@ def sitl_up(
     bind: Annotated[str, typer.Option(help="Address to bind the UDP links to.")] = "127.0.0.1",
     spacing_m: Annotated[float, typer.Option(help="Distance between vehicles on the ground [m].")] = 2.5,
     stats: Annotated[Optional[Path], typer.Option(help="Write link and drop counters here at exit (JSON).")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="Stop by itself after this simulated time [s].")] = None,
+    duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Stop by itself after this simulated time [s].")] = None,
     param: Annotated[Optional[list[str]], typer.Option("--param", metavar="NAME=VALUE",
                                                        help="A parameter every vehicle starts with, e.g. "
                                                             "NOISE_POS_M=0.02 (repeat).")] = None,
@@ -225,19 +247,28 @@ def sitl_up(
                                                         "TIMESYNC's too [ppm].")] = 0.0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
-    """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration)."""
+    """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration-s)."""
     import asyncio
 
     from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
     from triswarm.sitl.lockstep import LockstepOptions
+    from triswarm.sitl.server import LinkOpenError
 
-    with user_errors():
+    def write(option: str, path: Path, data: dict) -> None:
+        try:
+            write_json_atomically(path, data)
+        except OSError as exc:
+            raise UserError(f"{option} {path}: cannot write it ({exc.strerror})") from None
+
+    with user_errors(LinkOpenError):
+        if n < 1:
+            raise UserError(f"-n must be at least 1, got {n}")
         _finite("speedup", speedup, positive=True)
         _finite("rate-hz", rate_hz, non_negative=True)
         _finite("physics-hz", physics_hz, positive=True)
         _finite("spacing-m", spacing_m, positive=True)
-        _finite("duration", duration, positive=True)
+        _finite("duration-s", duration_s, positive=True)
         _finite("lockstep-timeout-s", lockstep_timeout_s, positive=True)
         _finite("max-rtf", max_rtf, positive=True)
         _finite("clock-drift-ppm", clock_drift_ppm)
@@ -258,14 +289,18 @@ def sitl_up(
                 params.append((name.strip().upper(), float(value)))
             except ValueError:
                 raise UserError(f"--param must be NAME=VALUE with a number, got {item!r}") from None
-        opts = SitlOptions(n=n, home=parse_home(home), speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
-                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration, first_id=first_id,
+        try:
+            home_lla = parse_home(home)
+        except ValueError as exc:  # not three numbers, or not a place on Earth
+            raise UserError(str(exc) if str(exc).startswith("--home") else f"--home {home}: {exc}") from None
+        opts = SitlOptions(n=n, home=home_lla, speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
+                           base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration_s, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust),
                            clock_drift_ppm=clock_drift_ppm)
 
         def ready(m: dict) -> None:
-            write_json_atomically(manifest, m)
+            write("--manifest", manifest, m)
             if quiet:
                 return
             table = Table(title=f"{n} simulated tri-rotors, home {opts.home[0]:.6f}, {opts.home[1]:.6f}, "
@@ -282,12 +317,10 @@ def sitl_up(
             console.print("pymavlink: mavutil.mavlink_connection(<link>); MAVSDK: the same with udpout://. "
                           "Ctrl-C stops.", soft_wrap=True)
 
-        try:
-            result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
-        except OSError as exc:
-            raise UserError(str(exc)) from None
+        # (a --rate-hz or --param the vehicles refuse: ParameterError; a port that cannot be opened: LinkOpenError)
+        result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
         if stats is not None:
-            write_json_atomically(stats, result)
+            write("--stats", stats, result)
     if not quiet:
         dropped = [f"{v['sysid']}: {v['drops']}" for v in result["vehicles"] if v["drops"]]
         rtf = (result.get("lockstep") or {}).get("real_time_factor") or result["speedup_achieved"] or 0.0
@@ -317,6 +350,11 @@ def main() -> None:
     except KeyboardInterrupt:
         err_console.print("triswarm: interrupted")
         sys.exit(130)
+    except Exception:  # not a mistake in the command (those end in one sentence and exit status 2): a bug
+        sys.excepthook(*sys.exc_info())
+        err_console.print("triswarm: internal error: a bug in triswarm, not a mistake in the command "
+                          "(the traceback above says where)", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

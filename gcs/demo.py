@@ -26,10 +26,10 @@ from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
 from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
-from .errors import console, err_console, user_errors
-from .link import GroundLink
+from .errors import UserError, console, err_console, user_errors
+from .link import GroundLink, LinkError
 from .plot_cmd import plot
-from .scenarios import read_plan_spec, plan_text
+from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
 from .stack import Stack, StackError
 from .swarm_cmd import command_all, start_all, upload_all
 
@@ -43,17 +43,31 @@ def _step(title: str, outcomes: dict) -> None:
         raise typer.Exit(code=1)
 
 
-def _wait(what: str, cond, timeout_s: float) -> None:
+def _fail(sentence: str) -> typer.Exit:
+    """The demo cannot go on (not the user's mistake, not a bug): one sentence, exit status 1."""
+    err_console.print(f"triswarm demo: {sentence}", markup=False, highlight=False, soft_wrap=True)
+    return typer.Exit(code=1)
+
+
+def _wait(stack: Stack, what: str, missing, timeout_s: float) -> None:
+    """Until ``missing()`` (what is still awaited, a sentence or "") is empty; stop with one sentence
+    when a process of the stack stops, or after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
-    while not cond():
+    while lack := missing():
+        if (stopped := stack.stopped()) is not None:
+            raise _fail(f"waiting for {what}: {stopped}")
         if time.monotonic() > deadline:
-            err_console.print(f"triswarm demo: {what} did not happen within {timeout_s:g} s")
-            raise typer.Exit(code=1)
+            raise _fail(f"no {what} within {timeout_s:g} s: {lack} (logs in {stack.workdir / 'logs'})")
         time.sleep(0.1)
 
 
+def _which(ids: list[int], state: str) -> str:
+    """"drones 2, 5 <state>", or "" for none."""
+    return f"{'drone' if len(ids) == 1 else 'drones'} {', '.join(map(str, ids))} {state}" if ids else ""
+
+
 def demo(
-    plan_name: Annotated[str, typer.Option("--plan", help="Built-in scenario or plan file.")] = "paper-hexagon",
+    plan_name: PlanArgument = DEFAULT_PLAN,
     duration_s: Annotated[float, typer.Option("--duration-s", help="Plan time to fly before landing [s].")] = 50.0,
     out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Fly on simulated time (sitl up --lockstep): as fast as this machine "
@@ -62,6 +76,10 @@ def demo(
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
+        if not (math.isfinite(duration_s) and duration_s > 0):
+            raise UserError(f"--duration-s must be a positive number, got {duration_s}")
+        if agents_per_process < 0:
+            raise UserError(f"--agents-per-process must not be negative, got {agents_per_process}")
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)
@@ -82,18 +100,26 @@ def demo(
             stack = running.enter_context(Stack(None, run / "stack", n, lockstep=lockstep,
                                                 agents_per_process=agents_per_process))
         except StackError as exc:
-            err_console.print(f"triswarm demo: the stack did not start: {exc}", markup=False, soft_wrap=True)
-            raise typer.Exit(code=1) from None
-        link = running.enter_context(GroundLink(stack.endpoints(), tlog=run / "gcs.tlog"))
+            raise _fail(f"the stack did not start: {exc}") from None
+        try:
+            link = running.enter_context(GroundLink(stack.endpoints(), tlog=run / "gcs.tlog"))
+        except LinkError as exc:
+            raise _fail(f"the ground station's link did not open: {exc}") from None
         ids = list(range(1, n + 1))
         console.print(f"sitl and {n} companions started (logs in {run / 'stack' / 'logs'})")
-        _wait("every companion's heartbeat", lambda: all(link.companion(i).heartbeat for i in ids)
-              and all(link.autopilot(i).heartbeat for i in ids), STARTUP_S)
+
+        def silent() -> str:
+            quiet = [i for i in ids if not (link.companion(i).heartbeat and link.autopilot(i).heartbeat)]
+            return _which(quiet, "not heard")
+
+        _wait(stack, "heartbeat from every drone and companion", silent, STARTUP_S)
         _step("plan upload", upload_all(link, ids, items))
         _step("arm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0]))
         _step("takeoff", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0] + [float("nan")] * 4))
-        _wait("hover after takeoff", lambda: all(link.autopilot(i).heartbeat.custom_mode == CustomMode.HOLD for i in ids), 30.0)
-        _wait("the flight controllers' clock", lambda: not math.isnan(link.fc_now()), 30.0)
+        _wait(stack, "hover after takeoff", lambda: _which(
+            [i for i in ids if link.autopilot(i).heartbeat.custom_mode != CustomMode.HOLD], "not holding"), 30.0)
+        _wait(stack, "time from the flight controllers' clock",
+              lambda: "no SYSTEM_TIME heard" if math.isnan(link.fc_now()) else "", 30.0)
         start = link.fc_now() + 3.0
         _step("plan start", start_all(link, ids, pid, start))
         (run / "run.json").write_text(json.dumps({"start_unix_s": start, "plan_id": pid, "drones": n,
@@ -110,8 +136,9 @@ def demo(
         info["formation_end_s"] = link.fc_now() - start
         (run / "run.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
         _step("land", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_LAND, []))
-        _wait("landing and disarm", lambda: all(not link.autopilot(i).heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-                                                for i in ids), 60.0)
+        _wait(stack, "landing and disarm", lambda: _which(
+            [i for i in ids if link.autopilot(i).heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED], "still armed"),
+            60.0)
         _step("disarm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]))
     console.print("every process stopped; making the figures from the log")
     plot(run)

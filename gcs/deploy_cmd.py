@@ -1,8 +1,7 @@
 """``triswarm deploy``: the command line of gcs/deploy.py.
 
-Also runs on its own, before it is registered in gcs/cli.py: ``python -m triswarm.gcs.deploy_cmd ...``. It
-reports like the rest of the CLI (gcs/errors.py) without importing it: that module brings the control design
-(scipy, python-control), a second and a half at every start, and deploy needs none of it.
+Also runs on its own: ``python -m triswarm.gcs.deploy_cmd ...``. It reports like the rest of the CLI
+(gcs/errors.py): a mistake in what was asked (DeployError) in one sentence and exit status 2.
 """
 
 from __future__ import annotations
@@ -15,17 +14,17 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.text import Text
 
+from .deploy import Outcome, deploy_all
+from .deploy_release import DEFAULT_ROOT, SOURCE, DeployError, Target, load_inventory, validate_target
 from .errors import console, user_errors
-from .deploy import DEFAULT_ROOT, SOURCE, DeployError, Outcome, Target, deploy_all, load_inventory, validate_target
-
-
 
 _STYLE = {"installed": "green", "unchanged": "green", "rolled back": "yellow", "failed": "red", "plan": "cyan"}
 
 
 def deploy(
     host: Annotated[Optional[str], typer.Option(help="The target, USER@HOST (or HOST with ssh's default user).")] = None,
-    drone_id: Annotated[Optional[int], typer.Option("--drone-id", help="The drone's id (1-255): the configuration's id.")] = None,
+    drone: Annotated[Optional[int], typer.Option("--drone", metavar="N", help="The drone's id (1-255): the "
+                                                                              "configuration's id.")] = None,
     config: Annotated[Optional[Path], typer.Option(help="The drone's configuration (TOML, as deploy/drone.example.toml, "
                                                         "whose values are the default). Files it names by relative "
                                                         "path are shipped along.")] = None,
@@ -56,9 +55,9 @@ def deploy(
     source: Annotated[Path, typer.Option(help="The triswarm checkout to build and take deploy/ from.")] = SOURCE,
 ) -> None:
     """Install the companion on onboard computers over SSH: wheel, configuration, key, systemd unit; then check."""
-    with user_errors():
+    with user_errors(DeployError):
         if (host is None) == (inventory is None):
-            raise DeployError("give either --host USER@HOST with --drone-id, or --inventory FILE")
+            raise DeployError("give either --host USER@HOST with --drone N, or --inventory FILE")
         if jobs < 1:
             raise DeployError(f"--jobs must be at least 1, got {jobs}")
         if wheel is not None and rollback:
@@ -69,9 +68,9 @@ def deploy(
         if inventory is not None:
             targets = load_inventory(inventory, Target(host="-", drone_id=1, **base))
         else:
-            if drone_id is None:
-                raise DeployError("--host needs --drone-id I")
-            targets = [Target(host=host, drone_id=drone_id, **base)]
+            if drone is None:
+                raise DeployError("--host needs --drone N")
+            targets = [Target(host=host, drone_id=drone, **base)]
             validate_target(targets[0])
         outcomes = _run(targets, wheel=wheel, dry_run=dry_run, rollback=rollback, source=source, jobs=jobs)
     _report(outcomes)
@@ -92,11 +91,8 @@ def _run(targets: list[Target], **kw) -> list[Outcome]:
         def say(text: str) -> None:
             bar.console.print(text, markup=False, highlight=False, soft_wrap=True)
 
-        try:
-            return deploy_all(targets, wheel_path=kw["wheel"], dry_run=kw["dry_run"], rollback=kw["rollback"],
-                              source=kw["source"], jobs=kw["jobs"], say=say, progress=progress)
-        except ValueError as exc:   # DeployError, a bad signing key
-            raise DeployError(str(exc)) from None
+        return deploy_all(targets, wheel_path=kw["wheel"], dry_run=kw["dry_run"], rollback=kw["rollback"],
+                          source=kw["source"], jobs=kw["jobs"], say=say, progress=progress)
 
 
 def _report(outcomes: list[Outcome]) -> None:

@@ -1,5 +1,11 @@
 """How the operator's CLI reports: its consoles, numbers in tables, and a user's mistake as one sentence and
-exit status 2."""
+exit status 2.
+
+A user's mistake is an exception of one of the project's own user-error types (USER_ERRORS, and what a
+command adds: ``user_errors(DeployError)``): raised where the user's input is parsed or the user's files are
+read, with a sentence that names the option or the file. Anything else, a ValueError or an OSError from deep
+inside included, is a bug or a fault of the machine and is shown as one (a traceback, exit status 1): never as
+the user's mistake."""
 
 from __future__ import annotations
 
@@ -17,19 +23,23 @@ from triswarm.protocol.plan import PlanError
 console = Console()
 err_console = Console(stderr=True)
 
-USER_ERRORS = (PlanError, ParameterError, FormationError, GraphError, ValueError, FileNotFoundError)
-
 
 class UserError(Exception):
     """A mistake in what the operator asked for (exit status 2)."""
 
 
+USER_ERRORS: tuple[type[Exception], ...] = (UserError, PlanError, ParameterError, FormationError, GraphError)
+"""The user-error types every command reports as one sentence: the CLI's own, and those the plan, the airframe,
+the formation design and the graphs raise for what a plan file or an option says."""
+
+
 @contextlib.contextmanager
-def user_errors():
-    """Turn a user's mistake into one sentence on stderr and exit status 2, never a traceback."""
+def user_errors(*also: type[Exception]):
+    """Turn a user's mistake (USER_ERRORS, and the types in ``also``) into one sentence on stderr and exit
+    status 2, never a traceback. Every other exception passes: a bug shows as a bug."""
     try:
         yield
-    except (UserError, *USER_ERRORS) as exc:
+    except (*USER_ERRORS, *also) as exc:
         err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=2) from None
 

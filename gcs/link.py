@@ -5,7 +5,7 @@ Endpoints come from a swarm manifest (``swarm.json``, written by ``triswarm stac
 
     {"swarm": "paper-hexagon", "drones": [{"id": 1, "mavlink": "udpout:127.0.0.1:14601"}, ...]}
 
-or from ``--drone ID=URL`` (pymavlink connection strings).
+or from ``--endpoint ID=URL`` (pymavlink connection strings).
 
 With a signing key, every frame sent is signed (MAVLink 2 signing; the link id is this process's
 id modulo 256, so ground stations running at once are, but for a chance of 1/256, separate streams
@@ -33,11 +33,15 @@ GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190, as ground stations do
 
 
+NETWORK_SCHEMES = ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin")
+"""pymavlink's connection strings that name a HOST:PORT (the others are serial devices and files)."""
+
+
 class LinkError(Exception):
     """An endpoint that cannot be opened or a manifest that cannot be read (one sentence)."""
 
 
-def parse_endpoints(manifest: Path | None, drones: list[str] | None) -> dict[int, str]:
+def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> dict[int, str]:
     """Drone id -> pymavlink URL, from a manifest and/or ``ID=URL`` strings (these win)."""
     out: dict[int, str] = {}
     if manifest is not None:
@@ -49,13 +53,17 @@ def parse_endpoints(manifest: Path | None, drones: list[str] | None) -> dict[int
             raise LinkError(f"{manifest}: no such swarm manifest") from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise LinkError(f"{manifest}: not a swarm manifest ({exc.__class__.__name__}: {exc})") from None
-    for spec in drones or []:
+    for spec in endpoints or []:
         ident, sep, url = spec.partition("=")
         if not sep or not ident.strip().isdigit() or not 1 <= int(ident) <= 254 or not url:
-            raise LinkError(f"--drone {spec!r}: expected ID=URL with ID in 1..254, e.g. 1=udpout:127.0.0.1:14601")
+            raise LinkError(f"--endpoint {spec!r}: expected ID=URL with ID in 1..254, e.g. 1=udpout:127.0.0.1:14601")
+        scheme, _, address = url.partition(":")
+        host, _, port = address.rpartition(":")
+        if scheme in NETWORK_SCHEMES and not (host and port.isdigit() and int(port) <= 65535):
+            raise LinkError(f"--endpoint {spec!r}: expected {scheme}:HOST:PORT with PORT in 0..65535")
         out[int(ident)] = url
     if not out:
-        raise LinkError("no drones: give --manifest (swarm.json) or --drone ID=URL")
+        raise LinkError("no drones: give --manifest (swarm.json) or --endpoint ID=URL")
     return out
 
 
@@ -126,19 +134,25 @@ class GroundLink:
         self._heartbeat_s = 1.0 / heartbeat_hz
         self._fc_offset_us: dict[int, int] = {}
         self._fc_now: dict[int, float] = {}
-        try:
-            for i, url in self.endpoints.items():
+        self.tlog = None
+        self._thread = threading.Thread(target=self._run, name="gcs-link", daemon=True)
+        for i, url in self.endpoints.items():
+            try:
                 self.conns[i] = mavutil.mavlink_connection(url, source_system=GCS_SYSID, source_component=GCS_COMPID,
                                                            autoreconnect=True)
-                self.codecs[i] = new_codec(GCS_SYSID, GCS_COMPID)
-                if signing_key is not None:
-                    setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters,
-                                  clock=time.time)
-        except Exception as exc:  # pymavlink raises what the socket or serial layer raises
-            self.close()
-            raise LinkError(f"cannot open the link to drone {i} at {url}: {exc}") from None
-        self.tlog = None if tlog is None else open(tlog, "ab")
-        self._thread = threading.Thread(target=self._run, name="gcs-link", daemon=True)
+            except (OSError, ValueError) as exc:  # what the socket or serial layer raises for this URL
+                self.close()
+                raise LinkError(f"cannot open the link to drone {i} at {url}: {exc}") from None
+            self.codecs[i] = new_codec(GCS_SYSID, GCS_COMPID)
+            if signing_key is not None:
+                setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters,
+                              clock=time.time)
+        if tlog is not None:
+            try:
+                self.tlog = open(tlog, "ab")
+            except OSError as exc:
+                self.close()
+                raise LinkError(f"{tlog}: cannot open the MAVLink log ({exc.strerror})") from None
 
     def __enter__(self) -> "GroundLink":
         self._thread.start()
@@ -153,7 +167,7 @@ class GroundLink:
             self._thread.join(timeout=2.0)
         for c in self.conns.values():
             c.close()
-        if getattr(self, "tlog", None) is not None:
+        if self.tlog is not None:
             self.tlog.close()
             self.tlog = None
 

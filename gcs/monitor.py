@@ -22,7 +22,7 @@ from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, mod
 
 from .errors import UserError, console, user_errors
 from .link import Seen, Subscription
-from .swarm_cmd import DEFAULT_TLOG, Drones, Ids, Manifest, SigningKey, Tlog, swarm_link
+from .swarm_cmd import DEFAULT_TLOG, Drones, Endpoints, Manifest, SigningKey, Tlog, swarm_link
 
 LOST_S = 2.0
 """A drone heard from longer ago than this is shown as lost."""
@@ -109,7 +109,7 @@ def _fmt(value: float | None, spec: str) -> str:
 
 
 def monitor(
-    manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+    manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
     signing_key: SigningKey = None,
     rate_hz: Annotated[float, typer.Option("--rate-hz", help="Refresh rate [Hz].")] = 5.0,
     duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Stop after this long [s].")] = None,
@@ -123,7 +123,7 @@ def monitor(
         if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
             raise UserError(f"--duration-s must be a positive number, got {duration_s}")
     plain = console if console.is_terminal else Console(width=PLAIN_WIDTH)
-    with _ctrl_c() as stop, swarm_link(manifest, drone, id, tlog, signing_key, require_all=False) as (link, chosen), \
+    with _ctrl_c() as stop, swarm_link(manifest, endpoint, drone, tlog, signing_key, require_all=False) as (link, chosen), \
             link.subscribe(None, COMP_AUTOPILOT, "LOCAL_POSITION_NED") as sub:
         positions: dict[int, tuple[float, object]] = {}
 

@@ -417,8 +417,14 @@ def init(out: Path, swarm: str, drones: int, routers: list[Router] | list[str], 
     out = Path(out)
     layout = Layout(out, Path(cert_dir) if cert_dir is not None else out.resolve())
     report = Report()
-    if not out.exists():
-        out.mkdir(parents=True, mode=0o700)
+    if out.exists() and not out.is_dir():
+        raise PkiError(f"--out {out}: not a folder")
+    try:
+        out.mkdir(parents=True, mode=0o700, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise PkiError(f"--out {out}: cannot write in this folder ({exc.strerror})") from None
     ca_cert, ca_key = layout.cert("ca"), layout.key("ca")
     with tempfile.TemporaryDirectory(prefix="triswarm-pki-") as tmp_name:
         tmp = Path(tmp_name)

@@ -21,7 +21,7 @@ from triswarm.protocol.separation import Approach
 from . import plan_flight
 from .errors import UserError, console, user_errors
 from .report import design_summary
-from .scenarios import load_plan
+from .scenarios import PlanArgument, load_plan
 
 CHECK_STEP_S = 0.1  # plan time between the instants checked [s]
 
@@ -31,7 +31,7 @@ plan_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_m
 
 @plan_app.command("check")
 def check(
-    file: Annotated[str, typer.Argument(help="Plan TOML file (or a built-in scenario name).")],
+    plan_name: PlanArgument,
     drones: Annotated[Optional[int], typer.Option(help="Resize the plan to N drones first, as `sim --drones` does.")] = None,
     horizon_s: Annotated[Optional[float], typer.Option("--horizon-s", help="Check and fly over [0, S] s (default: the plan's "
                                                                            "duration_s, 60 s unless it says).")] = None,
@@ -61,7 +61,7 @@ def check(
                 raise UserError(f"--{name} must be a positive number, got {value}")
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
-        plan = load_plan(file, drones)
+        plan = load_plan(plan_name, drones)
         changes = {k: v for k, v in (("min_separation_m", min_separation_m), ("position_bound_m", position_bound_m),
                                      ("attitude_bound_rad", attitude_bound_rad)) if v is not None}
         if changes:

@@ -35,9 +35,9 @@ def plot(
     """Write RUN/telemetry.csv, RUN/summary.json and the figures from RUN/gcs.tlog; exit 1 if the
     formation missed the bounds."""
     from . import plots, report
-    from .runlog import read_run_log
+    from .runlog import RunLogError, read_run_log
 
-    with user_errors():
+    with user_errors(RunLogError):
         if not math.isfinite(window_start_s):
             raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
         for name, value in (("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
@@ -48,9 +48,11 @@ def plot(
         for name in RUN_FILES:
             if not (run / name).is_file():
                 raise UserError(f"{run}: not a run folder: it has no {name}")
-        start_unix_s = _start_unix_s(run / "run.json")
+        start_unix_s, formation_end_s = _run_times(run / "run.json")
         if end_s is None:
-            end_s = json.loads((run / "run.json").read_text(encoding="utf-8")).get("formation_end_s")
+            end_s = formation_end_s
+        elif not math.isfinite(end_s):
+            raise UserError(f"--end-s must be a finite number, got {end_s}")
         plan = load_plan(str(run / "plan.toml"))
         design = plan.design
         try:
@@ -84,14 +86,24 @@ def plot(
         raise typer.Exit(code=1)
 
 
-def _start_unix_s(path: Path) -> float:
+def _run_times(path: Path) -> tuple[float, float | None]:
+    """run.json's start_unix_s (the plan's start, Unix seconds) and formation_end_s (plan time, or None)."""
     try:
-        start = json.loads(path.read_text(encoding="utf-8")).get("start_unix_s")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
-        raise UserError(f"{path}: cannot be read as a JSON object") from None
-    if isinstance(start, bool) or not isinstance(start, (int, float)) or not math.isfinite(start):
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        info = None
+    if not isinstance(info, dict):
+        raise UserError(f"{path}: cannot be read as a JSON object")
+    start, end = info.get("start_unix_s"), info.get("formation_end_s")
+    if not _number(start):
         raise UserError(f"{path}: start_unix_s must be the plan's start as a number of Unix seconds, got {start!r}")
-    return float(start)
+    if end is not None and not _number(end):
+        raise UserError(f"{path}: formation_end_s must be a number of seconds of plan time, got {end!r}")
+    return float(start), None if end is None else float(end)
+
+
+def _number(x: object) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
 
 
 def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metrics.Performance) -> list[dict]:

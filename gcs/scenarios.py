@@ -4,13 +4,24 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, spec_from_toml
+
+DEFAULT_PLAN = "paper-hexagon"
 
 
 def builtin_names() -> list[str]:
     folder = resources.files("triswarm.protocol").joinpath("plans")
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+PlanArgument = Annotated[str, typer.Argument(
+    metavar="PLAN", show_default=True,
+    help=f"A plan file (TOML) or a built-in scenario name ({', '.join(builtin_names())}).")]
+"""How every `triswarm` command that takes a plan takes it: one positional PLAN."""
 
 
 def plan_text(name_or_path: str) -> str:

@@ -47,6 +47,8 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: 
 
     rng = random.Random()
     lo, hi = _below_ephemeral()
+    if count > hi - lo - 2:
+        raise StackError(f"no {count} free ports found below the ephemeral range ({lo}-{hi - 1}): it has fewer")
     if contiguous:
         for _ in range(tries):
             base = rng.randrange(lo, hi - count - 1)
@@ -150,13 +152,10 @@ class Stack:
                              "--stats", str(self.workdir / "stats" / "sitl.json"),
                              *(["--lockstep"] if self.lockstep else ["--quiet"]), *self.sitl_args])
         deadline = time.monotonic() + 60.0
-        while not manifest_path.exists():
+        while not manifest_path.is_file():
             if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
                 self.__exit__(None, None, None)  # (first: the log is complete once the sitl is gone)
-                log = self.workdir / "logs" / "sitl.log"
-                lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
-                said = f": {lines[-1].strip()}" if lines else ""
-                raise StackError(f"sitl did not start{said} (log: {log})")
+                raise StackError(f"sitl did not start{self._last_words('sitl')}")
             time.sleep(0.05)
         return json.loads(manifest_path.read_text())
 
@@ -178,7 +177,7 @@ class Stack:
         return {i: f"udpout:127.0.0.1:{self.gcs_ports[i - 1]}" for i in range(1, self.n + 1)}
 
     def companion_cmd(self, agents: list[int]) -> list[str]:
-        plan = [] if self.plan_path is None else ["--plan", str(self.plan_path), "--autostart",
+        plan = [] if self.plan_path is None else [str(self.plan_path), "--autostart",
                                                   "--start-at", f"{self.start_at:.3f}"]
         links = []
         for i in agents:
@@ -204,6 +203,23 @@ class Stack:
 
     def alive(self) -> dict[str, bool]:
         return {name: p.poll() is None for name, p in self.procs.items()}
+
+    def stopped(self) -> str | None:
+        """One sentence on the first process of the stack that has stopped (None while all run): its
+        name, its exit status and the last line of its log."""
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                return f"{name} stopped (exit status {p.returncode}){self._last_words(name)}"
+        return None
+
+    def _last_words(self, name: str) -> str:
+        """": <the last line of the log> (log: <path>)", or " (log: <path>)" for an empty log."""
+        log = self.workdir / "logs" / f"{name}.log"
+        try:
+            lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+        except OSError:
+            lines = []
+        return f"{': ' + lines[-1].strip() if lines else ''} (log: {log})"
 
     def __exit__(self, *exc) -> None:
         companions = [p for name, p in self.procs.items() if name != "sitl"]

@@ -1,5 +1,5 @@
 """The operator's commands to a flying swarm, over MAVLink: plan upload / download / clear, leader
-goto / hold, and arm, takeoff, land, disarm, for one drone (--id) or all. With --signing-key, every
+goto / hold, and arm, takeoff, land, disarm, for some drones (--drone N, repeated) or all. With --signing-key, every
 frame they send is signed (MAVLink 2 signing): companions started with the same key refuse unsigned
 commands, plans and parameter changes."""
 
@@ -24,12 +24,15 @@ from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, enco
 from . import missions
 from .errors import UserError, console, err_console, user_errors
 from .link import GroundLink, LinkError, parse_endpoints
+from .scenarios import PlanArgument
 
 Manifest = Annotated[Optional[Path], typer.Option("--manifest", envvar="TRISWARM_MANIFEST",
                                                   help="Swarm manifest (swarm.json) with each drone's MAVLink endpoint.")]
-Drones = Annotated[Optional[list[str]], typer.Option("--drone", help="A drone's endpoint as ID=URL (repeat), "
-                                                     "e.g. 1=udpout:192.168.1.11:14550.")]
-Ids = Annotated[Optional[list[int]], typer.Option("--id", help="Only this drone (repeat); default: all.")]
+Endpoints = Annotated[Optional[list[str]], typer.Option("--endpoint", metavar="ID=URL",
+                                                        help="A drone's MAVLink endpoint as ID=URL (repeat), e.g. "
+                                                             "1=udpout:192.168.1.11:14550.")]
+Drones = Annotated[Optional[list[int]], typer.Option("--drone", metavar="N", help="Only this drone (repeat); "
+                                                                                  "default: all.")]
 Tlog = Annotated[Path, typer.Option("--tlog", help="Append every MAVLink message received to this .tlog.")]
 SigningKey = Annotated[Optional[Path], typer.Option("--signing-key", envvar="TRISWARM_SIGNING_KEY",
                                                     help="MAVLink 2 signing key file (32 bytes, or 64 hex digits), "
@@ -42,23 +45,26 @@ leader_app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup
 
 
 @contextlib.contextmanager
-def swarm_link(manifest: Path | None, drone: list[str] | None, ids: list[int] | None, tlog: Path,
+def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[int] | None, tlog: Path,
                signing_key: Path | None = None, require_all: bool = True):
     """The link to the selected drones, once each companion's heartbeat is heard (with
     ``require_all`` False, at once: a monitor shows the silent ones as lost)."""
     with user_errors():
-        key = None if signing_key is None else read_signing_key(signing_key)
         try:
-            endpoints = parse_endpoints(manifest, drone)
+            key = None if signing_key is None else read_signing_key(signing_key)
+        except ValueError as exc:  # unreadable, or not a key (a sentence naming the file)
+            raise UserError(f"--signing-key {exc}") from None
+        try:
+            endpoints = parse_endpoints(manifest, endpoint)
         except LinkError as exc:
             raise UserError(str(exc)) from None
-        unknown = sorted(set(ids or []) - set(endpoints))
+        unknown = sorted(set(drones or []) - set(endpoints))
         if unknown:
-            raise UserError(f"--id {unknown[0]}: not in the swarm (drones {', '.join(map(str, sorted(endpoints)))})")
-        chosen = sorted(ids or endpoints)
+            raise UserError(f"--drone {unknown[0]}: not in the swarm (drones {', '.join(map(str, sorted(endpoints)))})")
+        chosen = sorted(set(drones or endpoints))
         try:
             link = GroundLink({i: endpoints[i] for i in chosen}, tlog=tlog, signing_key=key)
-        except (LinkError, OSError) as exc:
+        except LinkError as exc:
             raise UserError(str(exc)) from None
     with link:
         if not require_all:
@@ -106,8 +112,8 @@ def result_text(result: int | None, reasons: str) -> tuple[bool, str]:
 # -- plans --------------------------------------------------------------------------------------
 
 def upload(
-    file: Annotated[str, typer.Argument(help="Plan file (TOML) or built-in scenario name.")],
-    manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
+    plan_name: PlanArgument,
+    manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
     start_in_s: Annotated[float, typer.Option("--start-in-s", help="Start the plan this long after the upload [s].")] = 10.0,
     no_start: Annotated[bool, typer.Option("--no-start", help="Upload only; the plan in force stays.")] = False,
 ) -> None:
@@ -119,17 +125,17 @@ def upload(
     with user_errors():
         if not (math.isfinite(start_in_s) and start_in_s >= 1.0):
             raise UserError(f"--start-in-s must be at least 1 s, got {start_in_s}")
-        plan = load_plan(file)
+        plan = load_plan(plan_name)
         plan.check()
         try:
             items = encode_plan(plan.spec)
         except PlanTransferError as exc:
-            raise UserError(f"{file}: {exc}") from None
+            raise UserError(f"{plan_name}: {exc}") from None
     pid = decode_plan(items)[1]
-    with swarm_link(manifest, drone, id, tlog, signing_key) as (link, chosen):
+    with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
         outside = [i for i in chosen if i > plan.n_agents]
         if outside:
-            raise typer.Exit(_refuse(f"{file}: the plan has {plan.n_agents} drones; drone {outside[0]} is not one of them"))
+            raise typer.Exit(_refuse(f"{plan_name}: the plan has {plan.n_agents} drones; drone {outside[0]} is not one of them"))
         outcomes = upload_all(link, chosen, items)
         if no_start or not all(ok for ok, _ in outcomes.values()):
             report(f"plan {plan.name} ({pid:08x}) uploaded, not started" if no_start else
@@ -184,37 +190,40 @@ def _refuse(sentence: str) -> int:
 
 
 def download(
-    id: Annotated[int, typer.Option("--id", help="The drone to read the plan from.")],
-    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
+    drone: Annotated[int, typer.Option("--drone", metavar="N", help="The drone to read the plan from.")],
+    manifest: Manifest = None, endpoint: Endpoints = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
     out: Annotated[Optional[Path], typer.Option(help="Write the plan here (TOML); default: print it.")] = None,
 ) -> None:
     """Read back the plan a drone holds (the one in force, else the one waiting for its start)."""
     import tomli_w
 
-    with swarm_link(manifest, drone, [id], tlog, signing_key) as (link, _):
+    with swarm_link(manifest, endpoint, [drone], tlog, signing_key) as (link, _):
         try:
-            items = missions.download(link, id)
+            items = missions.download(link, drone)
         except (missions.NoAnswer, PlanTransferError) as exc:
-            raise typer.Exit(_refuse(f"drone {id}: {exc}"))
+            raise typer.Exit(_refuse(f"drone {drone}: {exc}"))
     if not items:
-        console.print(f"drone {id} holds no plan")
+        console.print(f"drone {drone} holds no plan")
         return
     try:
         spec, pid = decode_plan(items)
     except PlanTransferError as exc:
-        raise typer.Exit(_refuse(f"drone {id}: {exc}"))
-    text = f"# plan {pid:08x}, downloaded from drone {id}\n" + tomli_w.dumps(spec)
+        raise typer.Exit(_refuse(f"drone {drone}: {exc}"))
+    text = f"# plan {pid:08x}, downloaded from drone {drone}\n" + tomli_w.dumps(spec)
     if out is None:
         console.print(text, markup=False, highlight=False)
     else:
-        out.write_text(text, encoding="utf-8")
-        console.print(f"drone {id}: plan {spec.get('name', '?')} ({pid:08x}, {len(items)} items) written to {out}")
+        try:
+            out.write_text(text, encoding="utf-8")
+        except OSError as exc:
+            raise typer.Exit(_refuse(f"--out {out}: cannot write the plan ({exc.strerror})")) from None
+        console.print(f"drone {drone}: plan {spec.get('name', '?')} ({pid:08x}, {len(items)} items) written to {out}")
 
 
-def clear(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+def clear(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
           signing_key: SigningKey = None) -> None:
     """Clear the plans the companions hold (refused while flying)."""
-    with swarm_link(manifest, drone, id, tlog, signing_key) as (link, chosen):
+    with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
         report("plan clear", for_each(chosen, lambda i: (lambda o: (o.ok, o.detail))(missions.clear(link, i))))
 
 
@@ -237,7 +246,7 @@ def leader_goto(
     yaw: Annotated[Optional[float], typer.Option("--yaw", help="Leader yaw at the end [deg] (default: kept).")] = None,
     speed: Annotated[float, typer.Option("--speed", help="Peak speed [m/s].")] = 2.0,
     lead_s: Annotated[float, typer.Option("--lead-s", help="Start the move this long from now [s], on every drone at once.")] = 1.0,
-    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
+    manifest: Manifest = None, endpoint: Endpoints = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
 ) -> None:
     """Move the leader (and with it the formation) to a point, at a peak speed."""
     with user_errors():
@@ -246,7 +255,7 @@ def leader_goto(
                 raise UserError(f"{name} must be a finite number, got {v}")
         if not (math.isfinite(speed) and 0 < speed <= 20):
             raise UserError(f"--speed must be in (0, 20] m/s, got {speed}")
-    with swarm_link(manifest, drone, None, tlog, signing_key) as (link, chosen):
+    with swarm_link(manifest, endpoint, None, tlog, signing_key) as (link, chosen):
         # the wire speaks NED, as every MAVLink tool does: north, east, down; yaw clockwise from north
         north_m, east_m, down_m = (float(v) for v in flip([x_m, y_m, z_m]))
         yaw_ned_rad = math.nan if yaw is None else -math.radians(yaw)
@@ -258,46 +267,46 @@ def leader_goto(
 @leader_app.command("hold")
 def leader_hold(
     lead_s: Annotated[float, typer.Option("--lead-s", help="Stop this long from now [s], on every drone at once.")] = 0.5,
-    manifest: Manifest = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
+    manifest: Manifest = None, endpoint: Endpoints = None, tlog: Tlog = DEFAULT_TLOG, signing_key: SigningKey = None,
 ) -> None:
     """Stop the leader where it is (it brakes to rest)."""
-    with swarm_link(manifest, drone, None, tlog, signing_key) as (link, chosen):
+    with swarm_link(manifest, endpoint, None, tlog, signing_key) as (link, chosen):
         report("leader hold", _leader(link, chosen, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD, [0.0, 0.0, 0.0], lead_s))
 
 
 # -- vehicles -----------------------------------------------------------------------------------
 
-def _vehicles(title: str, command: int, params: list[float], manifest, drone, id, tlog, signing_key) -> None:
-    with swarm_link(manifest, drone, id, tlog, signing_key) as (link, chosen):
+def _vehicles(title: str, command: int, params: list[float], manifest, endpoint, drone, tlog, signing_key) -> None:
+    with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
         report(title, command_all(link, chosen, COMP_AUTOPILOT, command, params))
 
 
-def arm(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+def arm(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
         signing_key: SigningKey = None) -> None:
     """Arm the flight controllers (on the ground)."""
-    _vehicles("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], manifest, drone, id, tlog, signing_key)
+    _vehicles("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], manifest, endpoint, drone, tlog, signing_key)
 
 
 def disarm(force: Annotated[bool, typer.Option(help="Disarm in the air too (the rotors stop: it falls).")] = False,
-           manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+           manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
            signing_key: SigningKey = None) -> None:
     """Disarm the flight controllers (on the ground, unless --force)."""
     _vehicles("disarm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0, 21196.0 if force else 0.0],
-              manifest, drone, id, tlog, signing_key)
+              manifest, endpoint, drone, tlog, signing_key)
 
 
-def takeoff(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+def takeoff(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
             signing_key: SigningKey = None) -> None:
     """Take off with the flight controllers' own controller to their TKO_ALT_M and hover (a plan
     starting later takes over from there)."""
     _vehicles("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, math.nan, math.nan, math.nan, math.nan],
-              manifest, drone, id, tlog, signing_key)
+              manifest, endpoint, drone, tlog, signing_key)
 
 
-def land(manifest: Manifest = None, drone: Drones = None, id: Ids = None, tlog: Tlog = DEFAULT_TLOG,
+def land(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
          signing_key: SigningKey = None) -> None:
     """Land where they are (the flight controllers take over; the formation flight ends)."""
-    _vehicles("land", mavlink.MAV_CMD_NAV_LAND, [], manifest, drone, id, tlog, signing_key)
+    _vehicles("land", mavlink.MAV_CMD_NAV_LAND, [], manifest, endpoint, drone, tlog, signing_key)
 
 
 def register(app: typer.Typer, plan_app: typer.Typer) -> None:

@@ -11,6 +11,7 @@ import asyncio
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
+from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
 from triswarm.protocol.wind import Wind
 
@@ -69,11 +70,11 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
         for code in ("ATT", "LPOS"):
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
             if problem:
-                raise ValueError(f"--rate-hz: {problem}")
+                raise ParameterError(f"--rate-hz: {problem}")
         for name, value in opts.params:
             problem = fc.set_param(name, value)
             if problem:
-                raise ValueError(f"--param {name}={value:g}: {problem}")
+                raise ParameterError(f"--param {name}={value:g}: {problem}")
         swarm.apply_airframe(i)
     server = SitlServer(swarm, opts.bind, opts.base_port, opts.speedup, opts.lockstep, say=say)
     stop = asyncio.Event()

@@ -21,6 +21,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from triswarm.protocol import frames
+from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
 
 from .fc import LINKS
@@ -70,12 +71,16 @@ class Link:
                 "host": host, "port": self.port}
 
 
+class LinkOpenError(OSError):
+    """A vehicle's UDP link cannot be opened (the port taken, the address not this host's): one sentence."""
+
+
 class SitlServer:
     def __init__(self, swarm: SitlSwarm, bind_host: str = "127.0.0.1", base_port: int = 14600,
                  speedup: float = 1.0, lockstep: LockstepOptions | None = None,
                  say=lambda text, warning=False: print(text)) -> None:
         if not (speedup > 0 and speedup <= 10000):
-            raise ValueError(f"speedup must be a number above 0 and at most 10000, got {speedup!r}")
+            raise ParameterError(f"speedup must be a number above 0 and at most 10000, got {speedup!r}")
         self.lockstep = None if lockstep is None else Lockstep(swarm.n, lockstep)
         self.say = say
         for fc in swarm.fcs:
@@ -124,7 +129,7 @@ class SitlServer:
                 except OSError as exc:
                     sock.close()
                     self.close()
-                    raise OSError(f"cannot open UDP {self.bind_host}:{port} for vehicle {fc.sysid} "
+                    raise LinkOpenError(f"cannot open UDP {self.bind_host}:{port} for vehicle {fc.sysid} "
                                   f"({name} link): {exc.strerror}") from None
                 sock.setblocking(False)
                 link.sock = sock

@@ -18,7 +18,7 @@ def triswarm(*args, cwd=None, timeout=120):
 
 def test_short_sim_writes_summary_telemetry_and_figures(tmp_path):
     out = tmp_path / "run"
-    r = triswarm("sim", "--scenario", "paper-hexagon", "--duration", "4", "--out", str(out), "--seed", "3")
+    r = triswarm("sim", "paper-hexagon", "--duration-s", "4", "--out", str(out), "--seed", "3")
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["drones"] == 6 and summary["design"]["c"] > 0
@@ -35,6 +35,29 @@ def test_short_sim_writes_summary_telemetry_and_figures(tmp_path):
     assert (len(rows) - 1) / 6 / 4.0 >= 20  # at least 20 rows per second per drone
     for name in ("fig7_trajectories_3d.png", "fig9_attitude.png", "fig10_position.png", "formation_error.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a flight that ends before the settled window (25 s for the case study) is judged over its second half
+    assert summary["performance"]["window_start_s"] == pytest.approx(2.0)
+
+
+def test_sim_judges_over_the_settled_window_its_strict_help_names(tmp_path):
+    """--strict's help: the window starts at the entry's end + check.settle_s. A plan whose entry ends at
+    2 s and settles for 1 s, flown 4 s: judged over [3 s, end], and --strict's exit status says the verdict."""
+    from triswarm.gcs.scenarios import plan_text
+
+    text = plan_text("paper-hexagon").replace("climb_s = 3.0", "climb_s = 1.0").replace("blend_s = 12.0", "blend_s = 1.0")
+    plan = tmp_path / "quick.toml"
+    plan.write_text("duration_s = 4.0\n" + text + "\n[check]\nsettle_s = 1.0\n")
+    help_text = triswarm("sim", "--help").stdout
+    assert "from the entry's end + check.settle_s" in " ".join(help_text.split())
+    for bound_m, status in ((0.10, None), (1e-9, 1)):
+        out = tmp_path / f"run-{bound_m}"
+        r = triswarm("sim", str(plan), "--out", str(out), "--no-figures", "--strict", "--position-bound-m", str(bound_m))
+        perf = json.loads((out / "summary.json").read_text())["performance"]
+        assert perf["window_start_s"] == pytest.approx(3.0), perf
+        within = perf["worst_position_error_m"] <= bound_m and perf["worst_attitude_error_rad"] <= 0.02
+        assert r.returncode == (0 if within else 1), (r.returncode, perf, r.stderr)
+        assert status is None or r.returncode == status
+        assert "worst errors over [3 s, end]" in r.stdout
 
 
 def bad(tmp_path, *args):
@@ -47,19 +70,19 @@ def bad(tmp_path, *args):
 
 
 def test_nan_parameter(tmp_path):
-    assert "--duration must be a finite number" in bad(tmp_path, "sim", "--duration", "nan")
+    assert "--duration-s must be a finite number" in bad(tmp_path, "sim", "--duration-s", "nan")
     assert "--servo-delay-s must not be negative" in bad(tmp_path, "sim", "--servo-delay-s", "-0.01")
 
 
 def test_negative_mass_in_a_scenario_file(tmp_path):
     path = paper_plan_variant(tmp_path, [("[leader]", "[airframe]\nmass_kg = -0.5\n\n[leader]")])
-    line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")
+    line = bad(tmp_path, "sim", str(path), "--duration-s", "2")
     assert "plan.toml" in line and "mass_kg must be positive" in line
 
 
 def test_nan_in_a_scenario_file(tmp_path):
     path = paper_plan_variant(tmp_path, [("radius_m = 10.0", "radius_m = nan")])
-    assert "formation.radius_m must be a finite number" in bad(tmp_path, "sim", "--scenario", str(path))
+    assert "formation.radius_m must be a finite number" in bad(tmp_path, "sim", str(path))
 
 
 def test_infeasible_formation_in_a_scenario_file(tmp_path):
@@ -67,12 +90,12 @@ def test_infeasible_formation_in_a_scenario_file(tmp_path):
     path = paper_plan_variant(tmp_path, [('type = "rotating-polygon"', f'type = "constant"\noffsets = [{offsets}]'),
                                  ("radius_m = 10.0\n", ""), ("altitude_m = 20.0\n", ""), ("rate_rad_s = 1.0\n", ""),
                                  ('attitude_rad = "paper-alternating"\n', "")])
-    line = bad(tmp_path, "sim", "--scenario", str(path), "--duration", "2")
+    line = bad(tmp_path, "sim", str(path), "--duration-s", "2")
     assert "fails the feasibility condition (76): drone 3 position rows 10-12" in line
 
 
 def test_wind_flags_and_wind_tables_bad_input(tmp_path):
-    for cmd in (("sim", "--duration", "2"), ("sitl", "up", "-n", "1")):
+    for cmd in (("sim", "--duration-s", "2"), ("sitl", "up", "-n", "1")):
         assert "--wind-m-s must be a finite number (not negative), got -3.0" in bad(tmp_path, *cmd, "--wind-m-s", "-3")
         assert "--turbulence must be none, light, moderate, severe" in bad(tmp_path, *cmd, "--turbulence", "gale")
         assert "--gust must be SPEED_M_S,DURATION_S,START_S[,FROM_DEG] (three or four numbers), got '5,2'" in \
@@ -80,15 +103,15 @@ def test_wind_flags_and_wind_tables_bad_input(tmp_path):
         assert "--gust: wind.gusts[1].duration_s must be positive, got -2.0" in \
             bad(tmp_path, *cmd, "--gust", "5,2,10", "--gust", "5,-2,10")
     path = paper_plan_variant(tmp_path, [("[leader]", "[wind]\nspeed_m_s = 4\nfrom = 90\n\n[leader]")])
-    assert "plan.toml: wind.from is not a known field" in bad(tmp_path, "sim", "--scenario", str(path))
+    assert "plan.toml: wind.from is not a known field" in bad(tmp_path, "sim", str(path))
 
 
 def test_unknown_scenario_and_unreadable_files(tmp_path):
-    assert "not a plan file and not a built-in scenario" in bad(tmp_path, "sim", "--scenario", "no-such")
-    assert "no such plan file" in bad(tmp_path, "sim", "--scenario", "missing.toml")
+    assert "not a plan file and not a built-in scenario" in bad(tmp_path, "sim", "no-such")
+    assert "no such plan file" in bad(tmp_path, "sim", "missing.toml")
     broken = tmp_path / "broken.toml"
     broken.write_text("name = \n")
-    assert "not valid TOML" in bad(tmp_path, "sim", "--scenario", str(broken))
+    assert "not valid TOML" in bad(tmp_path, "sim", str(broken))
 
 
 def test_sitl_up_bad_input(tmp_path):
@@ -144,9 +167,9 @@ def test_sim_refuses_an_uncertified_schedule_unless_forced(tmp_path):
     --force flies it anyway, with the reason as a warning."""
     path = paper_plan_variant(tmp_path, [("switch_period_s = 5.0\n", 'switch_period_s = 5.0\n'
                                           'families = ["two-chain", "triangles", "reverse-two-chain"]\n')])
-    line = bad(tmp_path, "sim", "--scenario", str(path), "--drones", "30", "--duration", "1")
+    line = bad(tmp_path, "sim", str(path), "--drones", "30", "--duration-s", "1")
     assert "topology schedule cannot be certified" in line and line.endswith("(--force flies it anyway)")
-    r = triswarm("sim", "--scenario", str(path), "--drones", "30", "--duration", "1", "--force", "--no-figures",
+    r = triswarm("sim", str(path), "--drones", "30", "--duration-s", "1", "--force", "--no-figures",
                  "--out", str(tmp_path / "run"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert r.stderr.startswith("triswarm: warning: ") and "topology schedule cannot be certified" in r.stderr
@@ -163,3 +186,21 @@ def test_the_cli_reference_is_the_clis_own_help():
     r = subprocess.run([sys.executable, str(root / "tools" / "gen_cli_docs.py"), "--check"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_bug_is_not_called_a_user_error(monkeypatch, capsys):
+    """A ValueError or OSError from inside (not from reading what the user wrote) is shown as a bug: its
+    traceback and exit status 1, never "error:" and exit status 2."""
+    from triswarm.gcs import cli, scenarios
+
+    for exc in (ValueError("a bug inside"), OSError(5, "a fault inside")):
+        def broken(*args, _exc=exc, **kwargs):
+            raise _exc
+
+        monkeypatch.setattr(scenarios, "load_plan", broken)
+        monkeypatch.setattr(sys, "argv", ["triswarm", "sim", "--duration-s", "1"])
+        with pytest.raises(SystemExit) as got:
+            cli.main()
+        err = capsys.readouterr().err
+        assert got.value.code == 1 and "Traceback" in err and str(exc) in err, err
+        assert "triswarm: internal error: a bug in triswarm" in err and "triswarm: error:" not in err, err

@@ -39,7 +39,7 @@ def test_a_zenoh_endpoint_that_is_taken():
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", "--plan", str(PAPER_PLAN_FILE),
+        line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", str(PAPER_PLAN_FILE),
                           "--zenoh-listen", f"tcp/127.0.0.1:{port}"])
     assert "cannot open the Zenoh session" in line and str(port) in line, line
 
@@ -48,5 +48,37 @@ def test_a_zenoh_endpoint_that_is_taken():
 def test_a_bad_plan_file(tmp_path, plan_text, message):
     plan = tmp_path / "bad.toml"
     plan.write_text(plan_text)
-    line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", "--plan", str(plan)])
+    line = one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", str(plan)])
     assert str(plan) in line and message in line, line
+
+
+def test_the_old_plan_option_still_works_for_one_release_and_says_so(tmp_path):
+    plan = tmp_path / "bad.toml"
+    plan.write_text("drones = 0\n")
+    r = subprocess.run(COMPANION + ["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", "--plan", str(plan)],
+                       capture_output=True, text=True, timeout=120)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith("triswarm-companion: warning: --plan FILE is deprecated"), lines
+    assert lines[-1].startswith("triswarm-companion: error: ") and str(plan) in lines[-1], lines
+
+
+def test_a_bad_option_is_one_sentence(tmp_path):
+    assert "--rate-hz must be between 1 and 2000" in one_error(["--fc", "udpout:127.0.0.1:9", "--gcs",
+                                                                "udpin:127.0.0.1:0", "--rate-hz", "0"])
+    assert "--fc 'udpout:nowhere': expected udpout:HOST:PORT" in one_error(["--fc", "udpout:nowhere", "--gcs",
+                                                                           "udpin:127.0.0.1:0"])
+
+
+def test_a_bug_is_not_called_a_user_error(monkeypatch):
+    """A ValueError from inside (not from reading what the operator wrote) ends as itself, not in exit status 2."""
+    from typer.testing import CliRunner
+
+    from triswarm.companion import cli, config
+
+    def broken(*args, **kwargs):
+        raise ValueError("a bug inside")
+
+    monkeypatch.setattr(config, "resolve_options", broken)
+    r = CliRunner().invoke(cli.app, ["--id", "1", "--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0"])
+    assert r.exit_code != 2 and isinstance(r.exception, ValueError) and "a bug inside" in str(r.exception)

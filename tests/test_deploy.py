@@ -31,7 +31,7 @@ from types import SimpleNamespace
 import pytest
 
 from triswarm.companion.config import ConfigError, load_config, resolve_options, run_checks
-from triswarm.gcs import deploy as dp
+from triswarm.gcs import deploy_release as dp
 from triswarm.gcs.stack import stop_in_turn
 
 from .needs import missing
@@ -183,7 +183,7 @@ def drone_config(d: Path, *, fc: str = "udpout:127.0.0.1:14600", key: bool = Tru
         (d / "zenoh.json5").write_text(f'{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{_free_port()}"] }} }}\n')
         zenoh = 'config = "zenoh.json5"'
     (d / "drone.toml").write_text(f"""\
-id = 99                        # replaced by --drone-id
+id = 99                        # replaced by --drone
 fc = "{fc}"
 gcs = "udpin:127.0.0.1:14550"
 rate_hz = 200
@@ -249,7 +249,7 @@ def wheels(tmp_path_factory):
 def test_install_rerun_upgrade_failures_and_rollback(sshd, wheels, tmp_path):
     root = prepared_root(tmp_path)
     cfg = drone_config(tmp_path / "cfg")
-    target = ["--host", f"{sshd.user}@127.0.0.1", "--drone-id", "4", "--root", str(root)]
+    target = ["--host", f"{sshd.user}@127.0.0.1", "--drone", "4", "--root", str(root)]
     venv = ["--venv-python", sys.executable, "--no-deps", "--source", str(wheels.source)]   # --no-deps: tests only
     common = [*target, "--config", str(cfg), *venv]
     staging_before = set(Path("/tmp").glob("triswarm-deploy.*"))
@@ -332,7 +332,7 @@ def test_install_rerun_upgrade_failures_and_rollback(sshd, wheels, tmp_path):
 
 def test_dry_run_on_a_new_target_writes_nothing(sshd, wheels, tmp_path):
     root = tmp_path / "nothing-here"
-    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "2", "--root", str(root), "--config",
+    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone", "2", "--root", str(root), "--config",
                    str(drone_config(tmp_path / "cfg")), "--wheel", str(wheels.base), "--dry-run",
                    "--source", str(wheels.source))
     assert r.returncode == 0, r.stdout + r.stderr
@@ -406,7 +406,7 @@ def test_pki_ships_the_drones_certificate_and_the_check_opens_mtls(sshd, wheels,
     router = zenoh.open(router_cfg)
     try:
         root = prepared_root(tmp_path)
-        r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "2", "--root", str(root),
+        r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone", "2", "--root", str(root),
                        "--config", str(drone_config(tmp_path / "cfg")), "--wheel", str(wheels.base),
                        "--venv-python", sys.executable, "--no-deps", "--source", str(wheels.source),
                        "--pki", str(d), "--zenoh-router", f"127.0.0.1:{port}")
@@ -427,24 +427,24 @@ def test_pki_ships_the_drones_certificate_and_the_check_opens_mtls(sshd, wheels,
     assert shipped["connect"]["endpoints"] == [f"tls/127.0.0.1:{port}"]   # its router only, not gs.example.org
 
     # a drone that pki init made no certificate for: refused before anything is copied
-    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "4", "--root", str(tmp_path / "other"),
+    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone", "4", "--root", str(tmp_path / "other"),
                    "--config", str(drone_config(tmp_path / "cfg")), "--wheel", str(wheels.base), "--pki", str(d))
     assert r.returncode == 2 and "no agent-4.pem" in r.stderr and "--drones 4 or more" in r.stderr, r.stdout + r.stderr
     assert not (tmp_path / "other").exists()
 
 
 def test_unreachable_host_fails_with_the_reason(sshd, wheels, tmp_path):
-    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone-id", "1", "--root", str(tmp_path / "r"),
+    r = run_deploy(sshd, "--host", f"{sshd.user}@127.0.0.1", "--drone", "1", "--root", str(tmp_path / "r"),
                    "--wheel", str(wheels.base), "--config", str(drone_config(tmp_path / "cfg")),
                    "--ssh-port", str(_free_port()))
     assert r.returncode == 1 and "cannot reach" in r.stdout and "Connection refused" in r.stdout, r.stdout + r.stderr
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--drone-id", "1"], "give either --host"),
-    (["--host", "root@127.0.0.1"], "--host needs --drone-id"),
-    (["--host", "root@127.0.0.1", "--drone-id", "300"], "--drone-id must be between 1 and 255"),
-    (["--host", "root@127.0.0.1", "--drone-id", "1", "--root", "relative/path"], "--root"),
+    (["--drone", "1"], "give either --host"),
+    (["--host", "root@127.0.0.1"], "--host needs --drone"),
+    (["--host", "root@127.0.0.1", "--drone", "300"], "--drone must be between 1 and 255"),
+    (["--host", "root@127.0.0.1", "--drone", "1", "--root", "relative/path"], "--root"),
 ])
 def test_bad_options_are_one_sentence(args, message):
     import typer

@@ -192,7 +192,7 @@ class FakeDrone:
 
 def test_plain_tables_for_a_duration_and_ctrl_c_exits_cleanly(tmp_path):
     with FakeDrone() as drone:
-        args = triswarm("monitor", "--drone", f"1={drone.url}", "--tlog", str(tmp_path / "gcs.tlog"))
+        args = triswarm("monitor", "--endpoint", f"1={drone.url}", "--tlog", str(tmp_path / "gcs.tlog"))
         done = subprocess.run([*args, "--duration-s", "1"], capture_output=True, text=True, timeout=60)
         assert done.returncode == 0, done.stderr
         assert "\x1b[" not in done.stdout  # plain text, no terminal codes

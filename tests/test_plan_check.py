@@ -159,7 +159,7 @@ def test_plan_upload_refuses_an_infeasible_plan_before_sending(tmp_path):
     drone.settimeout(0.5)
     try:
         r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "plan", "upload", str(path), "--tlog",
-                            str(tmp_path / "gcs.tlog"), "--drone", f"1=udpout:127.0.0.1:{drone.getsockname()[1]}"],
+                            str(tmp_path / "gcs.tlog"), "--endpoint", f"1=udpout:127.0.0.1:{drone.getsockname()[1]}"],
                            capture_output=True, text=True, timeout=60)
         assert r.returncode == 2, r.stdout + r.stderr
         assert r.stderr.count("\n") == 1 and "feasibility condition (76)" in r.stderr and str(path) in r.stderr

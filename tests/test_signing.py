@@ -68,7 +68,7 @@ def test_key_file_is_32_bytes_or_64_hex_digits(tmp_path):
 
 @pytest.mark.parametrize("cmd", [
     [sys.executable, "-m", "triswarm.companion.cli", "--id", "1", "--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0"],
-    [sys.executable, "-m", "triswarm.gcs.cli", "arm", "--drone", "1=udpout:127.0.0.1:9"],
+    [sys.executable, "-m", "triswarm.gcs.cli", "arm", "--endpoint", "1=udpout:127.0.0.1:9"],
 ])
 def test_a_wrong_key_file_is_one_error(tmp_path, cmd):
     bad = tmp_path / "bad.key"

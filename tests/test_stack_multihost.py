@@ -309,7 +309,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
                     spawn(net.exec_prefix(h), f"companion-{i}", [
                         sys.executable, "-m", "triswarm.companion.cli", "--id", str(i),
                         "--fc", vehicle[i]["links"]["companion"]["pymavlink"], "--gcs", f"udpin:{net.address[h]}:{14550 + i}",
-                        "--plan", str(PAPER_PLAN_FILE), "--autostart", "--start-at", f"{start:.3f}",
+                        str(PAPER_PLAN_FILE), "--autostart", "--start-at", f"{start:.3f}",
                         "--zenoh-config", str(agent_cfg),
                         "--rate-hz", str(RATE_HZ), "--state-dir", str(tmp_path / "state" / str(i)), "--stats", str(tmp_path / "stats" / f"{i}.json")])
             # the root namespace: the flight controllers' own telemetry, the bus via router A
@@ -318,7 +318,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             # (and through host B's router, whose agents 3 and 4 need 5 and 6 for a path in reverse-two-chain)
             watch_b = BusWatch(client_config(generated / "gcs.json5", routers["b"], tmp_path / "zenoh" / "gcs-b.json5"), rec.now)
             # the operator's monitor, from the root namespace to every companion's MAVLink link, all along
-            monitor = MonitorTables(triswarm("monitor", *[a for url in gcs_urls for a in ("--drone", url)],
+            monitor = MonitorTables(triswarm("monitor", *[a for url in gcs_urls for a in ("--endpoint", url)],
                                              "--rate-hz", "1", "--tlog", str(tmp_path / "gcs.tlog")), rec.now,
                                    tmp_path / "logs" / "monitor.txt")
             wait_plan(CUT_AT)

@@ -38,3 +38,43 @@ def test_the_demo_says_in_one_sentence_what_stops_it(tmp_path):
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert lines[0].startswith(f"triswarm: error: cannot write the run folder {blocker / 'run'}"), lines
+
+
+def test_no_free_ports_is_one_sentence():
+    lo, hi = _below_ephemeral()
+    with pytest.raises(StackError, match=rf"^no 5 free ports found below the ephemeral range \({lo}-{hi - 1}\)$"):
+        free_ports(5, exclude=frozenset(range(lo, hi)), tries=3)
+    with pytest.raises(StackError, match=rf"^no {hi - lo} free ports found below the ephemeral range .*: it has fewer$"):
+        free_ports(hi - lo, contiguous=True)
+
+
+def test_the_demo_says_in_one_sentence_that_the_sitl_did_not_start(tmp_path):
+    run = tmp_path / "run"
+    (run / "stack" / "manifest.json").mkdir(parents=True)  # where the sitl writes its manifest: it cannot
+    r = subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "demo", "--out", str(run)],
+                       capture_output=True, text=True, timeout=120)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    log = run / "stack" / "logs" / "sitl.log"
+    assert lines[0] == (f"triswarm demo: the stack did not start: sitl did not start: triswarm: error: --manifest "
+                        f"{run / 'stack' / 'manifest.json'}: cannot write it (Is a directory) (log: {log})"), lines
+
+
+def test_the_demo_names_a_companion_that_stopped_at_start(tmp_path, capsys):
+    """The demo's waits end, in one sentence, as soon as a process of the stack stops: which one, its
+    exit status and the last line of its log (here a companion refusing its options)."""
+    import typer
+
+    from triswarm.gcs.demo import _wait
+
+    stack = Stack(None, tmp_path / "stack", 2, companion_args={2: ["--rate-hz", "0"]})
+    with stack:
+        with pytest.raises(typer.Exit) as got:
+            _wait(stack, "heartbeat from every drone and companion", lambda: "drones 1, 2 not heard", 60.0)
+        assert got.value.exit_code == 1
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    log = tmp_path / "stack" / "logs" / "companion-2.log"
+    assert lines == [f"triswarm demo: waiting for heartbeat from every drone and companion: companion-2 stopped "
+                     f"(exit status 2): triswarm-companion: error: --rate-hz must be between 1 and 2000, got 0.0 "
+                     f"(log: {log})"], lines
+    assert all(p.poll() is not None for p in stack.procs.values())

@@ -8,7 +8,7 @@ packed and sent back. No observer, references, protocol, RFL, health or routing.
 least a Python companion of this design can cost, and N times it plus the SITL is what a swarm of N
 needs of this machine before any control runs.
 
-    python tests/bench/bench_floor.py [--sizes 6,12,24] [--seconds 20] [--rate-hz 200] [--without-zenoh | --router]
+    python tests/bench/bench_floor.py [--sizes 6,12,24] [--duration-s 20] [--rate-hz 200] [--without-zenoh | --router]
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def run(n: int, seconds: float, rate_hz: float, zenoh: bool = True, router: bool
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="6,12,24", help="swarm sizes measured")
-    ap.add_argument("--seconds", type=float, default=20.0, help="seconds measured per size")
+    ap.add_argument("--duration-s", type=float, default=20.0, help="seconds measured per size")
     ap.add_argument("--rate-hz", type=float, default=200.0, help="telemetry and command rate")
     ap.add_argument("--without-zenoh", action="store_true", help="skeletons without the Zenoh bus (MAVLink alone)")
     ap.add_argument("--router", action="store_true", help="skeletons as Zenoh clients of one router (tests/zenoh_router.py)")
@@ -151,7 +151,7 @@ def main() -> None:
     parts = "MAVLink link" + ("" if args.without_zenoh else ", Zenoh bus" + (" via a router" if args.router else ""))
     print(f"companion floor at {args.rate_hz:g} Hz (I/O only: {parts}, no control); {cores} cores")
     for n in [int(x) for x in args.sizes.split(",")]:
-        r = run(n, args.seconds, args.rate_hz, not args.without_zenoh, args.router)
+        r = run(n, args.duration_s, args.rate_hz, not args.without_zenoh, args.router)
         busy = n * r["skeleton_mean"] + r["sitl"] + r["router"]
         router = f", router {100 * r['router']:.0f} %" if args.router else ""
         line = (f"  N = {n:3d}: skeleton {100 * r['skeleton_mean']:.1f} % mean ({100 * r['skeleton_max']:.1f} % max) of a "

@@ -7,7 +7,7 @@ the companions' per agent), and the formation's worst error over the plan's sett
 from the flight controllers' own telemetry. Several agents per companion process (one loop, one
 Zenoh session) is the default; ``--agents-per-process 1`` gives each agent a process of its own.
 
-    python tests/bench/bench_lockstep.py [--plan examples/paper-hexagon.toml] [--sizes 6] [--seconds 50]
+    python tests/bench/bench_lockstep.py [PLAN (examples/paper-hexagon.toml)] [--sizes 6] [--duration-s 50]
                                          [--agents-per-process 0] [--judge-from 25]
 """
 
@@ -76,21 +76,21 @@ def run(plan_path: Path, n: int, seconds: float, per_process: int, judge_from: f
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--plan", type=Path, default=ROOT / "examples" / "paper-hexagon.toml")
+    ap.add_argument("plan", type=Path, nargs="?", default=ROOT / "examples" / "paper-hexagon.toml", help="plan file")
     ap.add_argument("--sizes", default="6", help="swarm sizes, comma-separated (the plan resized)")
-    ap.add_argument("--seconds", type=float, default=50.0, help="plan time flown [s]")
+    ap.add_argument("--duration-s", type=float, default=50.0, help="plan time flown [s]")
     ap.add_argument("--agents-per-process", type=int, default=0, help="agents per companion process (0: all in one)")
     ap.add_argument("--judge-from", type=float, default=25.0, help="the settled window starts here [s of plan time]")
     a = ap.parse_args()
     for n in [int(x) for x in a.sizes.split(",")]:
         try:
-            r = run(a.plan, n, a.seconds, a.agents_per_process, a.judge_from)
+            r = run(a.plan, n, a.duration_s, a.agents_per_process, a.judge_from)
         except Exception as exc:  # name what failed, go on with the next size
             print(f"N = {n:4d}: FAILED: {exc.__class__.__name__}: {exc}", flush=True)
             continue
         print(f"N = {n:4d}, {r['processes']} companion process(es): real-time factor {r['rtf']:.2f}; CPU per simulated "
               f"second: SITL {r['sitl_cpu_per_sim_s']:.3f} s, {r['agent_cpu_per_sim_s']:.3f} s per agent; worst "
-              f"{r['worst_m']:.4f} m / {r['worst_rad']:.4f} rad over [{min(a.judge_from, a.seconds - 1):g}, {a.seconds:g}] s "
+              f"{r['worst_m']:.4f} m / {r['worst_rad']:.4f} rad over [{min(a.judge_from, a.duration_s - 1):g}, {a.duration_s:g}] s "
               f"({'within' if r['ok'] else 'OUTSIDE'} 0.10 m / 0.02 rad); {r['wall_s']:.0f} s in all", flush=True)
 
 

@@ -115,19 +115,19 @@ def keeps_real_time(n: int, seconds: float) -> tuple[bool, str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=8.0, help="wall seconds measured per run")
+    ap.add_argument("--duration-s", type=float, default=8.0, help="wall seconds measured per run")
     ap.add_argument("--sizes", default="25,50,75,100,125,150,200", help="N values tried, increasing")
     args = ap.parse_args()
     print(f"sitl: {os.cpu_count()} cpus; one SITL process plus one receiver process")
     largest = 0
     for n in [int(x) for x in args.sizes.split(",")]:
-        ok, line = keeps_real_time(n, args.seconds)
+        ok, line = keeps_real_time(n, args.duration_s)
         print("  " + line, flush=True)
         if not ok:
             break
         largest = n
     print(f"largest N kept in real time: {largest}")
-    stats, rates = run_sitl(6, args.seconds, speedup=1000.0)
+    stats, rates = run_sitl(6, args.duration_s, speedup=1000.0)
     per_vehicle = min(min(r.values()) for r in rates.values())
     print(f"N = 6 as fast as it runs: {stats['speedup_achieved']:.1f} x real time "
           f"(ATTITUDE received at {per_vehicle:.0f} per wall second per vehicle)")

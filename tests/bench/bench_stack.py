@@ -81,7 +81,7 @@ def summary(stats: list[dict], sharing: int = 1) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=30.0, help="seconds of flight measured per run")
+    ap.add_argument("--duration-s", type=float, default=30.0, help="seconds of flight measured per run")
     ap.add_argument("--sizes", default="2,4,6,8,12,18,24", help="swarm sizes tried, in order, for the largest real-time swarm")
     ap.add_argument("--rate-hz", type=float, default=200.0, help="control rate of every companion (the targets are for 200 Hz)")
     ap.add_argument("--agents-per-process", type=int, default=1, help="agents per companion process (0: all in one)")
@@ -89,7 +89,7 @@ def main() -> None:
     rate, per = args.rate_hz, args.agents_per_process
     how = "one agent per companion process" if per == 1 else \
         "every agent in one companion process" if per == 0 else f"{per} agents per companion process"
-    six = s = summary(run(6, args.seconds, rate, per), 6 if per == 0 else per)
+    six = s = summary(run(6, args.duration_s, rate, per), 6 if per == 0 else per)
     print(f"six-drone stack at {rate:g} Hz, {how} (worst agent; a process's CPU shared by its agents):")
     print(f"  control loop jitter p99      {s['jitter_p99_ms']:.3f} ms   (target < 1 ms at 200 Hz)")
     print(f"  telemetry-to-command latency p50 {s['latency_p50_ms']:.3f} ms, p99 {s['latency_p99_ms']:.3f} ms   (target p99 < 2 ms)")
@@ -99,7 +99,7 @@ def main() -> None:
           f"(and {100 * s['superseded_fraction']:.3f} % of samples superseded: the SITL late)")
     largest = 0
     for n in [int(x) for x in args.sizes.split(",")]:
-        s = six if n == 6 else summary(run(n, args.seconds, rate, per), n if per == 0 else per)
+        s = six if n == 6 else summary(run(n, args.duration_s, rate, per), n if per == 0 else per)
         ok = s["miss_fraction"] <= 0.001
         print(f"  N = {n:3d}: deadline misses {100 * s['miss_fraction']:.3f} %, CPU {100 * s['cpu_mean']:.1f} % mean, "
               f"latency p99 {s['latency_p99_ms']:.2f} ms -> {'real time' if ok else 'too many misses'}", flush=True)

@@ -96,7 +96,7 @@ def main() -> None:
         source, drones = SCENARIOS[scenario_label]
         plan = with_drag_term(load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones), term == "on")
         label = f"{scenario_label}, drag term {term}"
-        scenario = f"--scenario {source}" + (f" --drones {drones}" if drones else "")
+        scenario = f"{source}" + (f" --drones {drones}" if drones else "")
         if term == "off":
             scenario += " (plan with [controller] air_density_kg_m3 = 0)"
         print(f"\n### {label}: {plan.n_agents} drones, settled window from {plan.settled_from_s:g} s to "
