@@ -125,10 +125,10 @@ class Autopilot:
 
     def _telemetry(self, t: str, msg, t_rx: float) -> None:
         t_us = msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else int(msg.time_usec)
-        self.answers.telemetry(t_us)
         self.heard_at_us[t] = t_us
         asm = self.assembler
         if t in ATTITUDE_SOURCES and self._preferred(t, ATTITUDE_SOURCES, t_us):
+            self.answers.telemetry(t_us)  # (the attitude is what a tick, and so an answer, is of)
             asm.take_attitude(t_us, *attitude_of(msg))
         if t in POSITION_SOURCES and self._preferred(t, POSITION_SOURCES, t_us):
             state = position_of(msg)
@@ -215,7 +215,8 @@ class Autopilot:
         interval = 1e6 / rate_hz
         for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
                            (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
-                           (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):
+                           (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6),
+                           (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)):  # (ArduPilot streams none of it unasked)
             await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
         request_time = lambda: self.send(mavlink.MAVLink_command_long_message(  # noqa: E731
             self.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 0, 0, 0, 0, 0, 0))

@@ -162,7 +162,7 @@ class Answers:
     def __init__(self, write: Callable[[bytes], None]) -> None:
         self.lockstep = False
         self._write = write
-        self.due_us = -1        # the newest high-rate telemetry stamp received [boot us]
+        self.due_us = -1        # the newest attitude stamp received (what a tick is of) [boot us]
         self.answered_us = -1   # the newest answered
         self._last_frame: bytes | None = None
         self._repeat = False
@@ -173,7 +173,7 @@ class Answers:
         every companion has answered, so a set-up takes no simulated time, however long it takes."""
 
     def telemetry(self, t_us: int) -> None:
-        """A high-rate message stamped ``t_us`` (several may share one state)."""
+        """An attitude message stamped ``t_us`` (the stream the companion ticks on)."""
         if t_us < self.due_us - REBOOT_JUMP_US:  # a restarted flight controller: a new clock
             self.answered_us = -1
             self.due_us = t_us

@@ -218,7 +218,11 @@ def sitl_up(
     manifest: Annotated[Path, typer.Option(help="Where to write the manifest JSON.")] = Path("sitl-manifest.json"),
     home: Annotated[str, typer.Option(help="Swarm home LAT,LON,ALT_M (the local origin, on the ground).")] = ",".join(f"{x:g}" for x in DEFAULT_HOME),
     speedup: Annotated[float, typer.Option(help="Run physics and streams K times faster than real time.")] = 1.0,
-    rate_hz: Annotated[float, typer.Option(help="ATTITUDE and LOCAL_POSITION_NED rate on companion links [Hz].")] = 100.0,
+    rate_hz: Annotated[Optional[float], typer.Option(help="ATTITUDE and LOCAL_POSITION_NED rate on companion links [Hz] "
+                                                          "(default: the profile's).")] = None,
+    fc_profile: Annotated[str, typer.Option(help="Stream on the companion links as this autopilot does: triswarm, px4 "
+                                                 "(Onboard mode) or ardupilot (Copter): messages, default rates, "
+                                                 "stamps, delays, SET_MESSAGE_INTERVAL limits.")] = "triswarm",
     physics_hz: Annotated[float, typer.Option(help="Physics (RK4) rate [Hz].")] = 1000.0,
     base_port: Annotated[int, typer.Option(help="UDP port of vehicle 1's companion link; vehicle i uses base+2(i-1) "
                                                 "(companion) and base+2(i-1)+1 (gcs). 0: any free ports.")] = 14600,
@@ -254,6 +258,7 @@ def sitl_up(
     from triswarm.sitl.launcher import SitlOptions, parse_home, run_sitl
     from triswarm.sitl.lockstep import LockstepOptions
     from triswarm.sitl.server import LinkOpenError
+    from triswarm.sitl.profiles import profile as sitl_profile
 
     def write(option: str, path: Path, data: dict) -> None:
         try:
@@ -265,6 +270,10 @@ def sitl_up(
         if n < 1:
             raise UserError(f"-n must be at least 1, got {n}")
         _finite("speedup", speedup, positive=True)
+        try:
+            sitl_profile(fc_profile)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
         _finite("rate-hz", rate_hz, non_negative=True)
         _finite("physics-hz", physics_hz, positive=True)
         _finite("spacing-m", spacing_m, positive=True)
@@ -293,7 +302,8 @@ def sitl_up(
             home_lla = parse_home(home)
         except ValueError as exc:  # not three numbers, or not a place on Earth
             raise UserError(str(exc) if str(exc).startswith("--home") else f"--home {home}: {exc}") from None
-        opts = SitlOptions(n=n, home=home_lla, speedup=speedup, rate_hz=rate_hz, physics_hz=physics_hz,
+        opts = SitlOptions(n=n, home=home_lla, speedup=speedup, rate_hz=rate_hz, fc_profile=fc_profile,
+                           physics_hz=physics_hz,
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration_s, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust),

@@ -19,6 +19,7 @@ from triswarm.protocol.frames import LocalProjection
 from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink
 
 from . import telemetry
+from .profiles import TRISWARM, Profile
 from .telemetry import STREAM_CODE, STREAMS, Snapshot
 
 LINKS = ("companion", "gcs")
@@ -42,7 +43,8 @@ AIRFRAME_PARAMS = frozenset({"MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ
 """The parameters that change the plant (``FlightController.airframe``)."""
 
 
-def param_specs(af: Airframe) -> list[ParamSpec]:
+def param_specs(af: Airframe, profile: Profile = TRISWARM) -> list[ParamSpec]:
+    """Every parameter; the companion link's stream rates default to ``profile``'s."""
     specs = [
         ParamSpec("MASS_KG", af.mass_kg, 0.05, 50.0, "vehicle mass [kg]"),
         ParamSpec("IXX_KGM2", af.Ixx_kg_m2, 1e-5, 10.0, "inertia about body x [kg m^2]"),
@@ -70,7 +72,8 @@ def param_specs(af: Airframe) -> list[ParamSpec]:
         ParamSpec("BAT_ARM_PCT", 20.0, 0.0, 100.0, "refuse to arm below this charge [%]"),
         ParamSpec("SIM_LOCKSTEP", 0.0, 0.0, 1.0, "1: the simulator steps when the companion has answered (read-only)"),
     ]
-    for code, (_, rate_c, rate_g) in STREAMS.items():
+    for code, (_, rate_g) in STREAMS.items():
+        rate_c = profile.rates_hz.get(code, 0.0)
         specs.append(ParamSpec(f"SC_{code}_HZ", rate_c, 0.0, 1000.0, f"stream rate of {code} on the companion link [Hz]"))
         specs.append(ParamSpec(f"SG_{code}_HZ", rate_g, 0.0, 1000.0, f"stream rate of {code} on the ground-station link [Hz]"))
     return specs
@@ -86,13 +89,15 @@ class FlightController:
     """One vehicle's autopilot. ``sysid`` from 1; ``start_m`` its resting place (paper frame)."""
 
     def __init__(self, sysid: int, airframe: Airframe, home: LocalProjection, start_m: np.ndarray,
-                 boot_unix_s: float) -> None:
+                 boot_unix_s: float, profile: Profile = TRISWARM) -> None:
         self.sysid = sysid
+        self.profile = profile
+        """How its companion link streams and honours SET_MESSAGE_INTERVAL (``profiles.py``)."""
         self.nominal = airframe
         self.home = home
         self.start_m = np.asarray(start_m, dtype=float)
         self.boot_unix_s = boot_unix_s
-        self.specs = param_specs(airframe)
+        self.specs = param_specs(airframe, profile)
         self.spec_by_name = {p.name: p for p in self.specs}
         self.params = {p.name: float(p.default) for p in self.specs}
         self.params_version = 0
@@ -472,15 +477,16 @@ class FlightController:
 
     def _set_interval(self, msg_id: int, interval_us: float, link: str) -> tuple[int, str | None]:
         code = STREAM_CODE.get(msg_id)
-        if code is None:
-            return mavlink.MAV_RESULT_UNSUPPORTED, None
+        companion = link == "companion"
+        if code is None or (companion and code in self.profile.not_streamable):
+            return getattr(mavlink, f"MAV_RESULT_{self.profile.unknown_result if companion else 'UNSUPPORTED'}"), None
         name = f"{LINK_PREFIX[link]}_{code}_HZ"
         if interval_us == 0:
             rate = self.spec_by_name[name].default
         elif interval_us < 0:
             rate = 0.0
         else:
-            rate = 1e6 / interval_us
+            rate = 1e6 / (self.profile.interval_us(interval_us) if companion else interval_us)
         problem = self.set_param(name, rate)
         if problem:
             return mavlink.MAV_RESULT_DENIED, f"interval refused: {problem}"

@@ -17,6 +17,7 @@ from triswarm.protocol.wind import Wind
 
 from .fc import LINK_PREFIX
 from .lockstep import LockstepOptions
+from .profiles import profile
 from .server import SitlServer
 from .swarm import SitlSwarm
 
@@ -26,8 +27,10 @@ class SitlOptions:
     n: int
     home: tuple[float, float, float] = DEFAULT_HOME
     speedup: float = 1.0
-    rate_hz: float = 100.0
-    """ATTITUDE and LOCAL_POSITION_NED rate on every companion link [Hz]."""
+    rate_hz: float | None = None
+    """ATTITUDE and LOCAL_POSITION_NED rate on every companion link [Hz] (None: the profile's defaults)."""
+    fc_profile: str = "triswarm"
+    """How the companion links stream, as which autopilot (``profiles.py``)."""
     physics_hz: float = 1000.0
     base_port: int = 14600
     bind: str = "127.0.0.1"
@@ -64,10 +67,10 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
-                      seed=opts.seed, first_id=opts.first_id, wind=opts.wind)
+                      seed=opts.seed, first_id=opts.first_id, wind=opts.wind, profile=profile(opts.fc_profile))
     for i, fc in enumerate(swarm.fcs):
         fc.clock_ppm = opts.clock_drift_ppm
-        for code in ("ATT", "LPOS"):
+        for code in ("ATT", "LPOS") if opts.rate_hz is not None else ():
             problem = fc.set_param(f"{LINK_PREFIX['companion']}_{code}_HZ", opts.rate_hz)
             if problem:
                 raise ParameterError(f"--rate-hz: {problem}")

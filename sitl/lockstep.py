@@ -25,7 +25,11 @@ from triswarm.protocol.mavlink import mavlink
 HIGH_RATE_IDS = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
                            mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
                            mavlink.MAVLINK_MSG_ID_HIGHRES_IMU})
-"""A datagram on a companion link with any of these is a state the companion must answer."""
+ATTITUDE_IDS = (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY)
+"""A companion ticks on the first of these that its link streams (its preference: ``companion/autopilot.py``).
+A datagram on a companion link with that one (with none of them streamed: any high-rate message) is a
+state the companion must answer, with its stamp: streams of their own, with stamps and delays of their
+own (``profiles.py``), are answered at the attitude the companion acts on."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,8 @@ class Lockstep:
     awaiting: dict[int, list] = field(default_factory=dict)
     """Vehicle index -> [telemetry time it must answer (us), wall time sent, wall time last offered]."""
     last_sent_us: dict[int, int] = field(default_factory=dict)
+    answered_us: dict[int, int] = field(default_factory=dict)
+    """Per vehicle: the newest telemetry time answered [us]."""
     waited_wall_s: list[float] = field(default_factory=list)
     """Per vehicle: wall time from each state sent to its answer, summed (the clock stood that long
     for it, alone or with others) [s]."""
@@ -64,7 +70,9 @@ class Lockstep:
 
     def sent(self, i: int, t_us: int, now_wall: float) -> None:
         """Vehicle i's companion was sent the state of telemetry time t_us."""
-        self.last_sent_us[i] = t_us
+        self.last_sent_us[i] = max(t_us, self.last_sent_us.get(i, -1))
+        if t_us <= self.answered_us.get(i, -1):
+            return  # (already answered: a stream's message that left late)
         if i in self.members and i not in self.awaiting:
             self.awaiting[i] = [t_us, now_wall, now_wall]
 
@@ -72,6 +80,7 @@ class Lockstep:
         """Vehicle i's companion answered telemetry time t_us (at wall time ``now_wall``). Returns
         what changed ("started", "back": vehicle i is a member again), or None."""
         said = None
+        self.answered_us[i] = max(t_us, self.answered_us.get(i, -1))
         if i not in self.members and t_us >= self.last_sent_us.get(i, 0):
             self.members.add(i)
             if not self.started and len(self.members) == self.n:

@@ -25,9 +25,10 @@ from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
 
 from .fc import LINKS
-from .lockstep import HIGH_RATE_IDS, Lockstep, LockstepOptions
+from .lockstep import ATTITUDE_IDS, HIGH_RATE_IDS, Lockstep, LockstepOptions
+from .profiles import JITTER_TABLE, product_step
 from .swarm import SitlSwarm
-from .telemetry import CONSTRUCTORS, STREAMS, _ms, batch_args
+from .telemetry import CONSTRUCTORS, STREAM_CODE, STREAMS, _ms, _us, batch_args
 
 PEER_TIMEOUT_S = 5.0
 MAX_PEERS_PER_LINK = 8
@@ -41,7 +42,7 @@ STANDING_HEARTBEAT_S = 1.0
 """Lockstep: while the clock stands this long [s, wall], every vehicle sends its heartbeat on the wall
 clock (a companion tells a dead flight controller from a waiting one by its silence)."""
 ACTUATOR_MSG_ID = mavlink.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
-SCHEDULED = (mavlink.MAVLINK_MSG_ID_HEARTBEAT, *(m for m, _, _ in STREAMS.values()))
+SCHEDULED = (mavlink.MAVLINK_MSG_ID_HEARTBEAT, *(m for m, _ in STREAMS.values()))
 """Every message a vehicle sends on its own schedule (rates from ``FlightController.stream_rate_hz``)."""
 
 
@@ -97,6 +98,21 @@ class SitlServer:
         """Per (vehicle, link): each stream's period [physics steps]."""
         self._groups: dict[int, dict[tuple[int, str], list[int]]] = {}
         """The same by period: what is due at every multiple of it."""
+        self.profile = swarm.profile
+        self._product_periods = {hz: 1.0 / (hz * swarm.dt_s) for hz in
+                                 {t.product_hz for t in self.profile.timing.values() if t.product_hz is not None}}
+        """Each estimator product rate of the profile -> its period [physics steps, maybe fractional]."""
+        self._products: dict[float, tuple[int, object]] = {}
+        """Each product rate -> (its newest product's step, the swarm's sensor rows then)."""
+        self._pending: dict[int, list[tuple[int, int, object]]] = {i: [] for i in range(swarm.n)}
+        """Per vehicle: the companion link's messages made and not sent yet (send step, id, message)."""
+        self._stream_state: dict[tuple[int, int], list[int]] = {}
+        """Per (vehicle, message id) of a timed stream: [product last sent, last send step]."""
+        self._jitter = {code: self.profile.jitter_steps(swarm.seed, code, swarm.dt_s) for code in self.profile.timing}
+        self._key_ids: dict[int, frozenset[int]] = {}
+        """Per vehicle: the messages whose stamps lockstep awaits answers to."""
+        self._last_keyed: dict[int, bytes] = {}
+        """Per vehicle: the last datagram awaited (sent again when its answer is overdue)."""
         self.sent = Counter()
         self.max_lag_s = 0.0
         self.overruns = 0
@@ -268,6 +284,8 @@ class SitlServer:
                 if rate > 0:
                     periods[msg_id] = max(1, int(round(1.0 / (rate * dt))))
             self._streams[(i, name)] = periods
+        attitude = [m for m in ATTITUDE_IDS if fc.stream_rate_hz("companion", m) > 0]
+        self._key_ids[i] = frozenset(attitude[:1]) if attitude else HIGH_RATE_IDS
         groups: dict[int, dict[tuple[int, str], list[int]]] = {}
         for key, periods in self._streams.items():
             for msg_id, period in periods.items():
@@ -275,8 +293,12 @@ class SitlServer:
         self._groups = groups
 
     def _send_due(self) -> None:
-        """Send every stream message due at this step, one datagram per vehicle and link."""
+        """Send every stream message due at this step, one datagram per vehicle and link (on the
+        companion link, the profile's timed streams are made now and leave when their delay is up)."""
         step = self.swarm.steps
+        for hz, period in self._product_periods.items():
+            if product_step(step, hz, self.swarm.dt_s) == step:
+                self._products[hz] = (step, self.swarm.sensor_rows())
         batches: dict[tuple[int, str], list[int]] | None = None
         for period, entries in self._groups.items():
             if step % period:
@@ -286,43 +308,100 @@ class SitlServer:
             else:
                 for key, ids in entries.items():
                     batches.setdefault(key, []).extend(ids)
+        batches = batches or {}
+        if self.profile.timing:
+            for (i, name), ids in list(batches.items()):
+                if name == "companion":
+                    batches[(i, name)] = self._make_timed(i, ids, step)
+            for i, pending in self._pending.items():
+                if pending and pending[0][0] <= step:
+                    batches.setdefault((i, "companion"), [])
         if batches:
             now_wall = time.monotonic()
             for (i, name), ids in batches.items():
                 self._send_batch(i, name, sorted(ids), now_wall)
 
+    def _make_timed(self, i: int, ids: list[int], step: int) -> list[int]:
+        """Vehicle i's timed streams due now, made from the estimator's newest product and held
+        until they leave (``profiles.py``); returns the other ids, sent now."""
+        rest = []
+        dt = self.swarm.dt_s
+        for msg_id in ids:
+            code = STREAM_CODE.get(msg_id)
+            timing = self.profile.timing.get(code)
+            if timing is None:
+                rest.append(msg_id)
+                continue
+            state = self._stream_state.setdefault((i, msg_id), [-1, -1])
+            product = product_step(step, timing.product_hz, dt)
+            if timing.new_only and product == state[0]:
+                continue  # (nothing new since the last one: not sent)
+            rows = self.swarm.sensor_rows() if product == step else self._products.get(timing.product_hz, (0, None))[1]
+            rows = self.swarm.sensor_rows() if rows is None else rows  # (the first step: no product kept yet)
+            delays = self._jitter[code]
+            send = step + (0 if delays is None else int(delays[step % JITTER_TABLE]))
+            send = max(send, state[1])  # (a stream leaves in order)
+            state[:] = [product, send]
+            msg = self._build(i, msg_id, product * dt, rows)
+            if timing.stamp == "send":
+                if hasattr(msg, "time_boot_ms"):
+                    msg.time_boot_ms = _ms(send * dt)
+                else:
+                    msg.time_usec = _us(send * dt)
+            pending = self._pending[i]
+            pending.append((send, msg_id, msg))
+            pending.sort(key=lambda e: e[0])
+        return rest
+
+    def _build(self, i: int, msg_id: int, t_s: float, rows):
+        # (stamped on the autopilot's clock; every vehicle's runs at the same rate: one batch for all)
+        args = batch_args(msg_id, self.swarm.fcs[i].clock_s(t_s), rows)
+        if args is not None:
+            return CONSTRUCTORS[msg_id](*args[i])
+        snap = self.swarm.snapshot(i) if rows is self.swarm.sensor_rows() else rows.row(i)
+        return self.swarm.fcs[i].build(msg_id, t_s, snap)
+
     def _send_batch(self, i: int, name: str, ids, now_wall: float | None = None) -> None:
-        """Messages ``ids`` of vehicle i as they are now, in one datagram on link ``name``."""
+        """Messages ``ids`` of vehicle i as they are now (and on the companion link, the timed ones
+        whose time has come), in one datagram on link ``name``."""
         now_wall = time.monotonic() if now_wall is None else now_wall
         link = self.links[i][name]
+        msgs = []
+        if name == "companion" and self._pending[i]:
+            pending, step = self._pending[i], self.swarm.steps
+            k = next((n for n, e in enumerate(pending) if e[0] > step), len(pending))
+            msgs, self._pending[i] = [(msg_id, msg) for _, msg_id, msg in pending[:k]], pending[k:]
         peers = link.live_peers(now_wall)
         if not peers:
             return
-        fc = self.swarm.fcs[i]
         now_s = self.swarm.time_s
-        stamp_s = fc.clock_s(now_s)  # (every vehicle's clock runs at the same rate: one batch for all)
         rows = self.swarm.sensor_rows()
-        snap = None
+        msgs += [(msg_id, self._build(i, msg_id, now_s, rows)) for msg_id in ids]
+        msgs.sort(key=lambda e: e[0])
         data = bytearray()
-        for msg_id in ids:
-            args = batch_args(msg_id, stamp_s, rows)
-            if args is not None:
-                msg = CONSTRUCTORS[msg_id](*args[i])
-            else:
-                snap = snap or self.swarm.snapshot(i)
-                msg = fc.build(msg_id, now_s, snap)
+        key_ids, key_us = self._key_ids.get(i, HIGH_RATE_IDS), -1
+        for msg_id, msg in msgs:
             data += msg.pack(link.codec)
             self.sent[msg_id] += 1
+            if msg_id in key_ids:
+                key_us = max(key_us, msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else msg.time_usec)
         self._sendto(link, bytes(data), peers)
-        if self.lockstep is not None and name == "companion" and not HIGH_RATE_IDS.isdisjoint(ids):
-            self.lockstep.sent(i, _ms(stamp_s) * 1000, now_wall)
+        if self.lockstep is not None and name == "companion" and key_us >= 0:
+            self._last_keyed[i] = bytes(data)
+            self.lockstep.sent(i, key_us, now_wall)
 
     def _offer(self, i: int) -> None:
-        """Lockstep: vehicle i's high-rate state, now, to its companion again (it answers it)."""
+        """Lockstep: vehicle i's state to its companion again (it answers it): the datagram it has
+        not answered, or before the clock runs, the high-rate state now."""
+        if self.lockstep.started and i in self._last_keyed:
+            self._sendto(self.links[i]["companion"], self._last_keyed[i], self.links[i]["companion"].live_peers(time.monotonic()))
+            return
         fc = self.swarm.fcs[i]
         ids = [m for m in HIGH_RATE_IDS if fc.stream_rate_hz("companion", m) > 0]
-        if ids:  # (with a heartbeat while the clock stands: a client waits for one before it starts)
-            heartbeat = [] if self.lockstep.started else [mavlink.MAVLINK_MSG_ID_HEARTBEAT]
+        # (with a heartbeat while the clock stands: a client waits for one before it starts, and an
+        # autopilot that streams nothing until asked, as ArduPilot, has nothing else to offer)
+        heartbeat = [] if self.lockstep.started else [mavlink.MAVLINK_MSG_ID_HEARTBEAT]
+        if ids or heartbeat:
             self._send_batch(i, "companion", heartbeat + sorted(ids))
 
     # -- the loop ---------------------------------------------------------------------------
@@ -359,7 +438,9 @@ class SitlServer:
         n = 1
         if to_next_event:
             step = self.swarm.steps
-            n = min([self.swarm.steps_to_control()] + [p - step % p for p in self._groups])
+            n = min([self.swarm.steps_to_control()] + [p - step % p for p in self._groups]
+                    + [math.floor((math.floor(step / p + 1e-9) + 1) * p + 1e-9) - step for p in self._product_periods.values()]
+                    + [pending[0][0] - step for pending in self._pending.values() if pending])
             if math.isfinite(self.end_s):
                 n = max(1, min(n, int(math.ceil((self.end_s - self.swarm.time_s) / self.swarm.dt_s - 1e-9))))
         self.swarm.step(n)

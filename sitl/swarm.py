@@ -29,6 +29,7 @@ from triswarm.protocol.wind import Wind
 
 from .fc import FlightController, drain_batteries
 from .physics import SENSOR_COLUMNS, Plant, quaternion_from_euler
+from .profiles import TRISWARM, Profile
 from .telemetry import Snapshot
 
 INTERNAL_MODES = (CustomMode.HOLD, CustomMode.LAND, CustomMode.TAKEOFF)
@@ -63,7 +64,8 @@ def autopilot_design(airframe: Airframe):
 class SitlSwarm:
     def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
                  physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
-                 boot_unix_s: float | None = None, first_id: int = 1, wind: Wind | None = None) -> None:
+                 boot_unix_s: float | None = None, first_id: int = 1, wind: Wind | None = None,
+                 profile: Profile = TRISWARM) -> None:
         if n < 1:
             raise ValueError(f"a swarm needs at least one vehicle, got {n}")
         self.n = n
@@ -78,7 +80,8 @@ class SitlSwarm:
         self.plant = Plant(airframe, n, dt_s=dt_s, wind=wind, wind_seed=seed)
         self.plant.reset(self.start_m)
         boot = time.time() if boot_unix_s is None else boot_unix_s
-        self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot) for i in range(n)]
+        self.profile = profile
+        self.fcs = [FlightController(first_id + i, airframe, self.home, self.start_m[i], boot, profile) for i in range(n)]
         self._commanded: set[int] = set()
         """The vehicles whose flight controllers took an actuator command since the last step."""
         for i, fc in enumerate(self.fcs):

@@ -23,22 +23,23 @@ from .physics import rotation_from_quaternion
 FIRMWARE_VERSION = (0, 1, 0)
 
 # Messages streamed, with the code used in their rate parameter (SC_<code>_HZ on the companion link,
-# SG_<code>_HZ on the ground-station link) and the default rates [Hz] on each link.
+# SG_<code>_HZ on the ground-station link) and the default rate on the ground-station link [Hz]
+# (the companion link's are the flight-controller profile's: ``profiles.py``).
 STREAMS = {
-    "ATT": (mavlink.MAVLINK_MSG_ID_ATTITUDE, 100.0, 10.0),
-    "ATTQ": (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 50.0, 0.0),
-    "LPOS": (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100.0, 10.0),
-    "GPOS": (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0, 5.0),
-    "ODOM": (mavlink.MAVLINK_MSG_ID_ODOMETRY, 50.0, 0.0),
-    "IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 50.0, 0.0),
-    "SYS": (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0, 1.0),
-    "BATT": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, 1.0, 1.0),
-    "EXT": (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 1.0, 1.0),
-    "HOME": (mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.2, 0.2),
-    "ACT": (mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 10.0, 2.0),
-    "TIME": (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1.0, 1.0),
+    "ATT": (mavlink.MAVLINK_MSG_ID_ATTITUDE, 10.0),
+    "ATTQ": (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 0.0),
+    "LPOS": (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10.0),
+    "GPOS": (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 5.0),
+    "ODOM": (mavlink.MAVLINK_MSG_ID_ODOMETRY, 0.0),
+    "IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 0.0),
+    "SYS": (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0),
+    "BATT": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, 1.0),
+    "EXT": (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 1.0),
+    "HOME": (mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.2),
+    "ACT": (mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 2.0),
+    "TIME": (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1.0),
 }
-STREAM_CODE = {msg_id: code for code, (msg_id, _, _) in STREAMS.items()}
+STREAM_CODE = {msg_id: code for code, (msg_id, _) in STREAMS.items()}
 
 
 @dataclass
