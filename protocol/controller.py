@@ -19,6 +19,8 @@ What this adds to the paper's law, and why (see docs/control-design.md):
 * Drag. In air (``air_density_kg_m3`` > 0) the RFL also cancels the body's drag in still air,
   -(k/m) |v| v at the estimated velocity (``rfl`` module docstring); the observer's disturbance is
   then the wind's share alone.
+* Body rates. Measured body rates can be three more outputs of the observer (``measured_rates``);
+  off by default: they cost half the servo-delay margin (docs/control-design.md).
 * Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
   translational disturbance along the commanded specific thrust (the idea of PX4's hover-thrust
   estimator) and divided out of u, so a heavier drone or a weaker propeller is flown as designed.
@@ -88,10 +90,10 @@ class FormationController:
         at the first tick in the air: a first compile takes seconds, a cache load some 300 ms."""
         from .agent import protocol_rows
 
-        scratch = FormationController(design, 1, rate_hz)
+        scratch = FormationController(design, 1, rate_hz, measured_rates=True)
         scratch.reset(np.r_[np.zeros(11), 1.0][None, :])
         y = np.r_[np.zeros(5), 1.0][None, :]
-        scratch.observe(y, [0])
+        scratch.observe(y, [0], np.zeros((1, 3)))
         scratch.actuate(np.zeros((1, 6)), [0])
         scratch.hold_tick(y, [0])
         z = np.zeros((1, 12))
@@ -99,17 +101,17 @@ class FormationController:
 
     @classmethod
     def for_plan(cls, plan: "Plan", n_agents: int, rate_hz: float, wind: "Wind | None",
-                 delay_s: float | None = None) -> "FormationController":
+                 delay_s: float | None = None, measured_rates: bool = False) -> "FormationController":
         """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
         thrust adaptation and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
         way a simulation and the companions make theirs."""
         return cls(plan.design, n_agents, rate_hz, delay_s,
                    thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
-                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind))
+                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates)
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
-                 air_density_kg_m3: float = 0.0) -> None:
+                 air_density_kg_m3: float = 0.0, measured_rates: bool = False) -> None:
         """air_density_kg_m3: the air the drones fly in, as the controller assumes it [kg/m^3], for
         the drag the RFL cancels; 0 is no air (the paper's law, to the bit)."""
         if not (np.isfinite(rate_hz) and rate_hz > 0):
@@ -129,6 +131,10 @@ class FormationController:
         self.air_density_kg_m3 = float(air_density_kg_m3)
         self.drag_1_m = self.rfl.drag_per_mass_1_m(self.air_density_kg_m3)
         """k / m of the drag the RFL cancels [1/m] (0: none)."""
+        self.measured_rates = bool(measured_rates)
+        """Take the body rates given to ``observe`` (the observer with the Euler rates as three more
+        outputs); off: the observer alone estimates them (docs/control-design.md says why it is
+        the default)."""
         self.adaptation_rate = float(thrust_adaptation_rate_1_s)
         self.kappa_limits = thrust_scale_limits
 
@@ -143,6 +149,9 @@ class FormationController:
         self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
         self._pred_G = np.array([np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1
                                  for j in range(self.lead_ticks)]).reshape(self.lead_ticks, self.n_z, 6)
+        A9, B9, C9, F9 = design.rates_observer_model()
+        self._Phi9, self._Gv9, self._Gy0_9, self._Gy1_9 = map(np.ascontiguousarray,
+                                                              _zoh_foh(A9 - design.c * F9 @ C9, B9, design.c * F9, self.dt_s))
         self._half_Phi, self._half_G = map(np.ascontiguousarray, _zoh(A, B, 0.5 * self.dt_s))
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
@@ -160,6 +169,7 @@ class FormationController:
         if self.z is None:
             self.z = np.zeros((self.n, self.n_z))
             self._y_prev = np.zeros((self.n, 6))
+            self._ed_prev = np.full((self.n, 3), np.nan)
             self._fresh = np.ones(self.n, dtype=np.bool_)
             self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
             self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
@@ -172,6 +182,7 @@ class FormationController:
         self.z[rows, :12] = self.rfl.phi_r(x)
         self._z_pred[rows] = self.z[rows]
         self._y_prev[rows] = x[:, 6:12]
+        self._ed_prev[rows] = np.nan
         self._fresh[rows] = True  # the first measurement after a reset is taken, not integrated
         hold = self.rfl.control(x, np.zeros((rows.size, 6)), self.air_density_kg_m3)
         omega, alpha = actuator_inverse(hold)
@@ -206,17 +217,26 @@ class FormationController:
             return self._all_rows
         return np.asarray(rows, dtype=np.int64).reshape(-1)
 
-    def observe(self, y: np.ndarray, rows=None) -> np.ndarray:
-        """Take y = (eta [rad], lambda [m]) (len(rows), 6) at t; return the estimate of x_r at
-        t + lead_s of those rows.
+    def observe(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> np.ndarray:
+        """Take y = (eta [rad], lambda [m]) (len(rows), 6) at t, and the body rates measured at t
+        (len(rows), 3) [rad/s] where a gyro gives them; return the estimate of x_r at t + lead_s of
+        those rows.
 
-        Rows of y that are not finite are treated as missing: the estimate runs on the model."""
+        Rows of y that are not finite are treated as missing: the estimate runs on the model. With
+        ``measured_rates``, a row with finite rates (and y) runs the observer with the Euler rates
+        Psi(eta) omega as three more outputs (``Design.F_rates``); the other rows, and every row
+        without ``measured_rates``, run the observer alone, bit for bit."""
         if self.z is None:
             raise RuntimeError("FormationController.observe before reset")
         rows = self._rows(rows)
         y = np.ascontiguousarray(y, dtype=float).reshape(rows.size, 6)
+        if rate_b_rad_s is None or not self.measured_rates:
+            rates = np.full((rows.size, 3), np.nan)
+        else:
+            rates = np.ascontiguousarray(rate_b_rad_s, dtype=float).reshape(rows.size, 3)
         kernels.observe(rows, self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi, self._Gv, self._Gy0,
-                        self._Gy1, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe, self._z_pred)
+                        self._Gy1, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe, self._z_pred,
+                        rates, self._ed_prev, self._Phi9, self._Gv9, self._Gy0_9, self._Gy1_9, MAX_PITCH_RAD)
         return self._z_pred[rows, :12]
 
     def actuate(self, v: np.ndarray, rows=None) -> Actuation:
@@ -234,11 +254,11 @@ class FormationController:
                         self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
         return Actuation(omega_now, alpha)
 
-    def hold_tick(self, y: np.ndarray, rows=None) -> None:
+    def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> None:
         """A control period in which no new command went out (the loop fell behind): take the
         measurement, and record that the actuators kept the last command."""
         rows = self._rows(rows)
-        self.observe(y, rows)
+        self.observe(y, rows, rate_b_rad_s)
         last_v = self._v_pipe[-1, rows] if self.lead_ticks else self._v_applied[rows]
         kept = np.empty((rows.size, 3))  # (the rotor speeds: the pipe keeps its last ones)
         kernels.push(rows, last_v, kept, True, self._v_pipe, self._motor_pipe, self._v_applied, kept)

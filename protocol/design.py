@@ -50,6 +50,9 @@ class DesignWeights:
     R_bar: np.ndarray
     coupling_margin: float = 1.0
     Q_disturbance: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    R_bar_rates: np.ndarray = field(default_factory=lambda: np.full(3, 0.01**2))
+    """Measurement noise of the Euler rates Psi(eta) omega that a gyro gives [rad^2/s^2], the three
+    more outputs of the observer used where body rates are measured."""
 
     def __post_init__(self) -> None:
         qd = np.array(self.Q_disturbance, dtype=float).reshape(-1)
@@ -59,6 +62,11 @@ class DesignWeights:
             raise ParameterError("design weight Q_disturbance must be all positive (disturbance estimation on) or all zero (off)")
         qd.setflags(write=False)
         object.__setattr__(self, "Q_disturbance", qd)
+        rr = np.array(self.R_bar_rates, dtype=float).reshape(-1)
+        if rr.shape != (3,) or not np.all(np.isfinite(rr)) or np.any(rr <= 0):
+            raise ParameterError(f"design weight R_bar_rates must be 3 positive numbers, got {self.R_bar_rates!r}")
+        rr.setflags(write=False)
+        object.__setattr__(self, "R_bar_rates", rr)
         for name, n in (("Q", 12), ("R", 6), ("Q_bar", 12), ("R_bar", 6)):
             M = np.array(getattr(self, name), dtype=float)
             if M.ndim == 1:
@@ -96,6 +104,9 @@ class Design:
     topology_names: tuple[str, ...] = field(default=())
     F_aug: np.ndarray | None = None
     """Kalman gain (18 x 6) of the observer augmented with the acceleration disturbance, or None."""
+    F_rates: np.ndarray | None = None
+    """Kalman gain (n x 9) of the observer the controller runs (``observer_model``) with the Euler
+    rates x_r[3:6] as three more outputs, for the ticks whose body rates are measured."""
 
     @property
     def estimates_disturbance(self) -> bool:
@@ -105,6 +116,11 @@ class Design:
     def cK(self) -> np.ndarray:
         """c K, the feedback gain of (72) (kept: the protocol uses it every tick)."""
         return np.ascontiguousarray(self.c * self.K)
+
+    def rates_observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C, F) of ``observer_model`` with the measured Euler rates: y = (eta, lambda, eta_dot)."""
+        A, B, C, _ = self.observer_model()
+        return A, B, rates_output(C), self.F_rates
 
     def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented
@@ -151,6 +167,9 @@ class Design:
         aug = self.augmented_observer_matrix()
         if aug is not None:
             out["augmented_observer_max_real_part"] = float(np.linalg.eigvals(aug).real.max())
+        if self.F_rates is not None:
+            A, _, C, F = self.rates_observer_model()
+            out["rates_observer_max_real_part"] = float(np.linalg.eigvals(A - self.c * F @ C).real.max())
         return out
 
     def gamma(self, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
@@ -185,6 +204,13 @@ def augmented_model(A_r: np.ndarray, B_r: np.ndarray, C_r: np.ndarray) -> tuple[
     return A, B, C
 
 
+def rates_output(C: np.ndarray) -> np.ndarray:
+    """C with the Euler rates (x_r rows 4-6) as three more outputs below (eta, lambda)."""
+    E = np.zeros((3, C.shape[1]))
+    E[:, 3:6] = np.eye(3)
+    return np.vstack([C, E])
+
+
 def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
     """Algorithm 1's gains for a swarm flying ``schedule``. Refuses a topology without Assumption 1."""
     # Imported here: python-control brings scipy.signal and matplotlib.pyplot (about 1 s), which a
@@ -206,8 +232,15 @@ def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
         Qa[:12, :12] = weights.Q_bar
         Qa[12:, 12:] = np.diag(weights.Q_disturbance)
         F_aug = np.asarray(control.lqe(Aa, np.eye(18), Ca, Qa, weights.R_bar)[0])
+        A_o, C_o, Q_o = Aa, Ca, Qa
+    else:
+        A_o, C_o, Q_o = A, C, weights.Q_bar
+    R_rates = np.zeros((9, 9))
+    R_rates[:6, :6] = weights.R_bar
+    R_rates[6:, 6:] = np.diag(weights.R_bar_rates)
+    F_rates = np.asarray(control.lqe(A_o, np.eye(A_o.shape[0]), rates_output(C_o), Q_o, R_rates)[0])
     d = Design(rfl, weights, np.asarray(K), np.asarray(P), np.asarray(F), np.asarray(P_bar), c, lambda_R, eigs,
-               B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug)
+               B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug, F_rates)
     margins = d.stability_margins()
     if any(value >= 0 for value in margins.values()):
         raise ParameterError(f"design is not stable (77): {margins}")

@@ -88,26 +88,57 @@ def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
 
 
 @njit()
-def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred):
+def euler_rates(phi, theta, p, q, r, max_pitch, out):
+    """eta_dot = Psi(eta) omega (23, errata) into out (3), pitch clipped to +-max_pitch."""
+    theta = min(max(theta, -max_pitch), max_pitch)
+    sf, cf = math.sin(phi), math.cos(phi)
+    tt, sec = math.tan(theta), 1.0 / math.cos(theta)
+    out[0] = p + sf * tt * q + cf * tt * r
+    out[1] = cf * q - sf * r
+    out[2] = sf * sec * q + cf * sec * r
+
+
+@njit()
+def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred,
+            rate_b, ed_prev, Phi9, Gv9, Gy0_9, Gy1_9, max_pitch):
     """One observer step for each agent row in ``rows`` (FOH on y, ZOH on v), then the prediction
     over the pipe; y[k] is row rows[k]'s measurement. A row whose measurement is not finite runs
     the open-loop model instead; a fresh row (just reset at this instant) only takes the
-    measurement. Updates z, y_prev, fresh, z_pred of those rows."""
+    measurement. Updates z, y_prev, fresh, z_pred of those rows.
+
+    rate_b[k] is row rows[k]'s measured body rates (NaN: none). A row with rates and y runs the
+    observer with the Euler rates they give, Psi(eta) omega (eta measured), as three more outputs
+    (Phi9, Gv9, Gy0_9, Gy1_9; FOH from the last measured ones, ``ed_prev``, NaN when none); the
+    others run as without rates, bit for bit."""
     nz = z.shape[1]
     tmp = np.empty(nz)
+    ed = np.empty(3)
     for k in range(rows.shape[0]):
         i = rows[k]
         ok = True
         for c in range(y.shape[1]):
             if not math.isfinite(y[k, c]):
                 ok = False
+        rated = ok and math.isfinite(rate_b[k, 0]) and math.isfinite(rate_b[k, 1]) and math.isfinite(rate_b[k, 2])
+        if rated:
+            euler_rates(y[k, 0], y[k, 1], rate_b[k, 0], rate_b[k, 1], rate_b[k, 2], max_pitch, ed)
+            if not math.isfinite(ed_prev[i, 0]):
+                ed_prev[i, :] = ed
         if fresh[i]:
             fresh[i] = False
             if ok:
                 y_prev[i, :] = y[k, :]
         else:
             tmp[:] = 0.0
-            if ok:
+            if rated:
+                _matvec_add(Phi9, z[i], tmp)
+                _matvec_add(Gv9, v_applied[i], tmp)
+                _matvec_add(Gy0_9[:, :6], y_prev[i], tmp)
+                _matvec_add(Gy0_9[:, 6:], ed_prev[i], tmp)
+                _matvec_add(Gy1_9[:, :6], y[k], tmp)
+                _matvec_add(Gy1_9[:, 6:], ed, tmp)
+                y_prev[i, :] = y[k, :]
+            elif ok:
                 _matvec_add(Phi, z[i], tmp)
                 _matvec_add(Gv, v_applied[i], tmp)
                 _matvec_add(Gy0, y_prev[i], tmp)
@@ -117,6 +148,10 @@ def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, p
                 _matvec_add(Phi1, z[i], tmp)
                 _matvec_add(G1, v_applied[i], tmp)
             z[i, :] = tmp
+        if rated:
+            ed_prev[i, :] = ed
+        else:
+            ed_prev[i, :] = math.nan
         z_pred[i, :] = 0.0
         _matvec_add(pred_Phi, z[i], z_pred[i])
         for j in range(pred_G.shape[0]):

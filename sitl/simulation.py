@@ -21,7 +21,7 @@ from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import Plan
 from triswarm.protocol.wind import Wind
 
-from .physics import Plant
+from .physics import RATE_B, Plant
 
 
 MAX_DISTANCE_M = 1e4
@@ -30,10 +30,13 @@ MAX_DISTANCE_M = 1e4
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """Zero-mean Gaussian noise on what the controller measures (standard deviations)."""
+    """Zero-mean Gaussian noise on what the controller measures (standard deviations), drawn anew
+    at every control tick."""
 
     position_m: float = 0.02
     attitude_rad: float = 0.005
+    gyro_rad_s: float = 0.01
+    """Per body axis: a MEMS gyro's noise at 200 Hz."""
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,9 @@ class SimConfig:
     controller_delay_s: float | None = None
     """Servo delay the controller compensates; None: the plan airframe's (0 switches it off)."""
     noise: SensorNoise | None = None
+    measured_rates: bool = False
+    """The controller takes the body rates the gyro measures as three more outputs of its observer;
+    False (the default, docs/control-design.md): the observer alone estimates them."""
     mismatch_pct: float = 0.0
     """Plant mass and inertias (1 + pct/100) times, k_f (1 - pct/200) times the controller's."""
     seed: int = 0
@@ -134,7 +140,8 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     af_plant = plant_airframe(plan, config)
     wind = flown_wind(plan, config)
     plant = Plant(af_plant, n, dt_s=1.0 / config.physics_hz, wind=wind, wind_seed=config.seed)
-    ctrl = FormationController.for_plan(plan, n, rate, wind, delay_s=config.controller_delay_s)
+    ctrl = FormationController.for_plan(plan, n, rate, wind, delay_s=config.controller_delay_s,
+                                       measured_rates=config.measured_rates)
     plant.reset(start)
     ctrl.reset(plant.observe().paper_state())
     plant.reset(start, servo_rad=ctrl.initial_actuation.alpha_rad)
@@ -173,11 +180,13 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
             bad = ~np.isfinite(plant.state).all(axis=1) | ~(np.abs(y[:, 3:6]).max(axis=1) < MAX_DISTANCE_M)
             diverged_drone = int(np.flatnonzero(bad)[0]) + 1
             break
+        rates = plant.state[:, RATE_B].copy()
         if config.noise is not None:
             y[:, 0:3] += rng.normal(0.0, config.noise.attitude_rad, (n, 3))
             y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))
+            rates += rng.normal(0.0, config.noise.gyro_rad_s, (n, 3))
         # One tick of every agent, as a companion runs it (estimates refer to t + lead).
-        xhat = ctrl.observe(y)
+        xhat = ctrl.observe(y, None, rates)
         ref = reference_at(design, offsets.offsets, plan.leader_state, t, lead, dt)
         xi = xhat - ref.h
         topo = plan.schedule.at(ref.t_p)

@@ -235,7 +235,7 @@ class SitlSwarm:
     def _fly_internal(self, rows: np.ndarray, now: float) -> None:
         s = self.sensor_rows()
         y = np.concatenate([s.euler_rad, s.position_m], axis=1)
-        xhat = self.inner.observe(y)
+        xhat = self.inner.observe(y, None, s.rate_b_rad_s)
         h = xhat.copy()  # vehicles not in an internal mode: xi = 0, their commands are not used
         gamma = np.zeros((self.n, 6))
         for i in rows:

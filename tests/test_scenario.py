@@ -37,6 +37,17 @@ def test_with_sensor_noise(paper_plan):
     assert perf.worst_position_m <= 0.25 and perf.worst_attitude_rad <= 0.05, perf
 
 
+def test_measured_body_rates_under_heavy_noise(paper_plan):
+    """Noise four times the default (position 0.08 m, attitude 0.02 rad, gyro 0.04 rad/s): the
+    observer with the measured rates as three more outputs flies the attitude markedly closer than
+    the observer alone (tests/bench/bench_rates.py; why it is not the default: docs/control-design.md)."""
+    noise = SensorNoise(position_m=0.08, attitude_rad=0.02, gyro_rad_s=0.04)
+    _, alone = fly(paper_plan, noise=noise, seed=7)
+    _, rates = fly(paper_plan, noise=noise, seed=7, measured_rates=True)
+    assert rates.worst_attitude_rad < 0.75 * alone.worst_attitude_rad, (rates, alone)
+    assert rates.worst_position_m < 0.15 and rates.worst_attitude_rad < 0.15, rates
+
+
 def test_with_model_mismatch(paper_plan):
     """Plant mass and inertias 20 % above, k_f 10 % below the controller's values."""
     result, perf = fly(paper_plan, mismatch_pct=20.0)
