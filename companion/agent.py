@@ -376,7 +376,7 @@ class Agent:
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
                       counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
-                      **self.autopilot.timesync.report())
+                      state_write_failures=self.store.failed_writes, **self.autopilot.timesync.report())
         return report
 
     # -- faults -------------------------------------------------------------------------------------
@@ -468,7 +468,7 @@ class Agent:
 
     def stats(self) -> dict:
         out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),
-               "tick_errors": self.errors,
+               "tick_errors": self.errors, "state_write_failures": self.store.failed_writes,
                "links": {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)},
                "fc_clock": self.autopilot.timesync.report()}
         if self.bus is not None:

@@ -146,7 +146,8 @@ class Stack:
     def _start_sitl(self) -> dict:
         """Start the SITL and wait for its manifest."""
         manifest_path = self.workdir / "manifest.json"
-        manifest_path.unlink(missing_ok=True)
+        if manifest_path.is_file():  # (a restart's old one; anything else there, the SITL says what)
+            manifest_path.unlink()
         self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
                              str(manifest_path), "--base-port", str(self.sitl_base_port),
                              "--stats", str(self.workdir / "stats" / "sitl.json"),
