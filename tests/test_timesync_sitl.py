@@ -21,6 +21,7 @@ import time
 import pytest
 
 from triswarm.companion.autopilot import Autopilot
+from triswarm.companion.timesync import EVERY_S
 from triswarm.protocol.mavlink import mavlink
 
 from .sitl_helpers import sitl_process
@@ -40,11 +41,11 @@ async def _measure(url: str) -> dict:
         deadline = time.monotonic() + DEADLINE_S
         k = 0
         while time.monotonic() < deadline:
-            if k % 10 == 0:
+            if k % max(1, round(1.0 / EVERY_S)) == 0:
                 ap.send(hb)  # (the SITL answers whoever has spoken in the last seconds)
             k += 1
-            ap.timesync.request()
-            await asyncio.sleep(0.1)
+            ap.timesync.request()  # (as often as the companion asks: the fit's window spans 128 of them)
+            await asyncio.sleep(EVERY_S)
             fit = ap.timesync.fit
             if fit is not None and fit.span_ns >= SPAN_S * 1e9 and fit.used >= 100:
                 break
