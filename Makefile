@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/triswarm demo examples/paper-hexagon.toml
+	$(VENV)/bin/triswarm demo examples/paper-hexagon.toml --lockstep --max-rtf 1
 
 # Two workers for everything on simulated time or with no clock at all; beside them, ahead of them
 # (niceness -10, as root), the few tests that judge something on the wall clock (tests/run_suite.py).

@@ -75,6 +75,9 @@ def demo(
     out: Annotated[Optional[Path], typer.Option(help="Run folder (default runs/<time>).")] = None,
     lockstep: Annotated[bool, typer.Option(help="Fly on simulated time (sitl up --lockstep): as fast as this machine "
                                                 "allows, the same however busy it is.")] = False,
+    max_rtf: Annotated[Optional[float], typer.Option(help="With --lockstep: never faster than this many simulated "
+                                                          "seconds per wall second (1: paced like real time, to "
+                                                          "watch it, yet unharmed by a busy machine).")] = None,
     agents_per_process: Annotated[int, typer.Option(help="Agents per companion process (0: all in one).")] = 0,
     noise: Annotated[bool, typer.Option(help="The flight controllers' estimates with sensor noise (1 sigma: 5 mm, "
                                              "1 cm/s, 1 mrad, 5 mrad/s).")] = True,
@@ -88,6 +91,9 @@ def demo(
             raise UserError(f"--duration-s must be a positive number, got {duration_s}")
         if agents_per_process < 0:
             raise UserError(f"--agents-per-process must not be negative, got {agents_per_process}")
+        if max_rtf is not None and not (lockstep and math.isfinite(max_rtf) and max_rtf > 0):
+            raise UserError(f"--max-rtf must be a positive number and goes with --lockstep, got {max_rtf}"
+                            + ("" if lockstep else " without --lockstep"))
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)
@@ -110,7 +116,7 @@ def demo(
                   f"{duration_s:g} s]", soft_wrap=True)
     with contextlib.ExitStack() as running:
         try:
-            sitl_args = ["--fc-profile", fc_profile, "--seed", "1"]
+            sitl_args = ["--fc-profile", fc_profile, "--seed", "1"] + ([] if max_rtf is None else ["--max-rtf", f"{max_rtf:g}"])
             sitl_args += [a for name, value in SENSOR_NOISE if noise for a in ("--param", f"{name}={value:g}")]
             stack = running.enter_context(Stack(None, run / "stack", n, lockstep=lockstep,
                                                 agents_per_process=agents_per_process, sitl_args=sitl_args))

@@ -180,7 +180,7 @@ def _sys_status(fc, now_s, s):
     total = drops + c["rx_frames"]
     drop_rate = int(10000 * drops / total) if total else 0
     return mavlink.MAVLink_sys_status_message(
-        SENSORS, SENSORS, SENSORS, 100, int(fc.battery_voltage_v * 1000), int(fc.battery_current_a * 100),
+        SENSORS, SENSORS, SENSORS, 100, _clamp_u16(fc.battery_voltage_v * 1000), _clamp16(fc.battery_current_a * 100),
         int(fc.battery_remaining_pct()), min(drop_rate, 10000), min(drops, 65535),
         min(c["drop_bad_crc"], 65535), min(c["drop_bad_frame"], 65535), min(c["drop_foreign_system"], 65535),
         min(c["drop_actuator_non_finite"], 65535))
@@ -188,11 +188,11 @@ def _sys_status(fc, now_s, s):
 
 def _battery_status(fc, now_s, s):
     cells = int(fc.params["BAT_CELLS"])
-    per_cell = int(fc.battery_voltage_v / cells * 1000)
+    per_cell = _clamp_u16(fc.battery_voltage_v / cells * 1000)
     voltages = [per_cell if i < cells else 65535 for i in range(10)]
     return mavlink.MAVLink_battery_status_message(
         0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767, voltages,
-        int(fc.battery_current_a * 100), int(fc.battery_used_mah), -1, int(fc.battery_remaining_pct()))
+        _clamp16(fc.battery_current_a * 100), int(min(fc.battery_used_mah, 2**31 - 1)), -1, int(fc.battery_remaining_pct()))
 
 
 def _extended_sys_state(fc, now_s, s):
@@ -234,7 +234,12 @@ def _heartbeat(fc, now_s, s):
 
 
 def _clamp16(v: float) -> int:
-    return int(max(-32767, min(32767, round(v))))
+    """An int16 field (a diverged plant's current or acceleration says "off the scale", not a crash)."""
+    return int(max(-32767, min(32767, round(v)))) if math.isfinite(v) else -1
+
+
+def _clamp_u16(v: float) -> int:
+    return int(max(0, min(65534, round(v)))) if math.isfinite(v) else 65535
 
 
 _BUILDERS = {

@@ -147,3 +147,17 @@ def test_commands_with_unusable_numbers_are_refused():
         m = msg_from(M.MAVLink_command_long_message(1, 1, cmd, 0, p1, 1, 0, 0, 0, 0, 0))
         assert fc.handle(m, "gcs", 0.0, sw.snapshot(0))[0].msg.result == M.MAV_RESULT_DENIED
     assert not fc.armed
+
+
+@pytest.mark.parametrize("current_a, voltage_v", [(1e6, 25.0), (float("nan"), float("nan")), (-1e6, 1e9)])
+def test_a_diverged_vehicles_battery_is_reported_not_a_crash(current_a, voltage_v):
+    """A plant flown off the scale (a diverged controller draws any current) still packs its
+    SYS_STATUS and BATTERY_STATUS: the 16-bit fields saturate, the flight controller keeps talking."""
+    sw = SitlSwarm(1)
+    fc, snap = sw.fcs[0], sw.snapshot(0)
+    fc.battery_current_a, fc.battery_voltage_v = current_a, voltage_v
+    codec = M.MAVLink(None, 1, 1)
+    for msg_id in (M.MAVLINK_MSG_ID_SYS_STATUS, M.MAVLINK_MSG_ID_BATTERY_STATUS):
+        msg = fc.build(msg_id, 1.0, snap)
+        back = codec.parse_buffer(msg.pack(codec))[0]
+        assert back.current_battery in (-1, 32767, -32767)
