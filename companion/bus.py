@@ -346,6 +346,8 @@ class Bus:
             earlier = newest.get(checked[0])
             if earlier is None or _newer(checked[6], checked[4], earlier[6], earlier[4]):
                 newest[checked[0]] = checked
+                if earlier is not None:  # (older than one read with it: never used)
+                    self.counters["drop_old"] += 1
             else:
                 self.counters["drop_old"] += 1
         if newest:
