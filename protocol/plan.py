@@ -484,7 +484,7 @@ def _schedule(f: _Fields, n: int) -> Schedule:
             if not isinstance(families, list) or not families:
                 raise PlanError(f"{f.where('families')} must list at least one topology family")
             for name in families:
-                if name not in graph_mod.FAMILIES:
+                if not isinstance(name, str) or name not in graph_mod.FAMILIES:
                     raise PlanError(f"{f.where('families')}: unknown family {name!r} "
                                     f"(known: {', '.join(graph_mod.FAMILIES)})")
                 topologies.append(graph_mod.FAMILIES[name](n))
