@@ -8,10 +8,12 @@ import math
 import socket
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from triswarm.companion.autopilot import Autopilot
+from triswarm.companion.ground_station import GroundStation
 from triswarm.companion.bus import Bus, Neighbour, _Inbox, _Member, _parse_status
 from triswarm.companion.links import MavLink
 from triswarm.protocol.codec import AgentStatus, Estimate, agent_of_key, encode_estimate
@@ -106,3 +108,18 @@ def test_a_link_counts_empty_datagrams_and_cut_frames():
         loop.close()
     assert [m.get_type() for m in got] == ["HEARTBEAT"]
     assert (link.counters["drop_empty"], link.counters["drop_partial_frame"], link.counters["rx"]) == (2, 1, 1)
+
+
+@pytest.mark.parametrize("half", [math.nan, math.inf, -1.0, 65536.0, 0.5])
+def test_a_plan_start_whose_plan_id_is_not_two_halves_is_denied(half):
+    """PLAN_START with a NaN or infinite plan-id half raised in the ground-station link's read."""
+    starts, sent = [], []
+    agent = SimpleNamespace(id=1, say=lambda text, severity=None: None,
+                            plans=SimpleNamespace(start=lambda pid, t: starts.append((pid, t)) or (M.MAV_RESULT_ACCEPTED, "")))
+    gs = GroundStation(agent, "udpin:127.0.0.1:0", None)
+    link = SimpleNamespace(send=sent.append)
+    for p1, p2 in ((half, 0x5678), (0x1234, half), (0x1234, 0x5678)):
+        gs._command(link, M.MAVLink_command_int_message(1, COMP_ONBOARD, 0, M.MAV_CMD_TRISWARM_PLAN_START, 0, 0, p1, p2,
+                                                        0, 0, 1_900_000_000, 500, 0))
+    assert [m.result for m in sent] == [M.MAV_RESULT_DENIED, M.MAV_RESULT_DENIED, M.MAV_RESULT_ACCEPTED]
+    assert starts == [(0x12345678, 1_900_000_000.5)]

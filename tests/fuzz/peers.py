@@ -6,7 +6,7 @@
   ATTITUDE with LOCAL_POSITION_NED in one datagram at ``rate_hz``, as triswarm's SITL sends them.
 
 Both read their socket in a thread of their own. Both can ``probe`` the companion with a
-PARAM_REQUEST_READ of its component 191 (the companion answers one from any link) and wait for the
+PARAM_SET of its component 191 (the companion answers one from any link) and wait for the
 answer: the fuzzers send a batch of inputs, then a probe, and go on when it is answered, so that no
 more than a batch waits in the companion's socket (the kernel would drop what does not fit, and
 the counts would no longer add up) and a companion that stops answering is seen at once.
@@ -23,7 +23,7 @@ from collections import Counter
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink as M, new_codec, reset_parser
 
 PARAMS = {"MOT_MAX_RPM": 8000.0, "SERVO_LIM_DEG": 90.0, "SIM_LOCKSTEP": 0.0}
-COMPANION_PARAMS = 7  # the companion's parameters before a plan declares COUPLING_C (ground_station.Params)
+PROBE_PARAM = "NB_WAIT_MS"  # a parameter of the companion's that nothing flies on while the fuzz runs (no plan flying)
 
 
 class Peer:
@@ -40,8 +40,10 @@ class Peer:
         self.reader = new_codec(sysid, compid)
         self.heard: Counter[str] = Counter()
         """What came from the companion's side, by message type."""
-        self.answered = -1
-        """The param_index of the newest PARAM_VALUE of component 191."""
+        self.probe_value: float | None = None
+        """The value of the newest PARAM_VALUE of PROBE_PARAM from component 191."""
+        self.probe_codec = None
+        """What probes are packed with (e.g. a signing codec), if not ``codec``."""
         self._probes = 0
         self.tap = None
         """Called with every datagram sent (the fuzzers' oracle sees what the companion gets)."""
@@ -101,9 +103,9 @@ class Peer:
                     if t == "BAD_DATA":
                         continue
                     self.heard[t] += 1
-                    if t == "PARAM_VALUE" and m.get_srcComponent() == COMP_ONBOARD:
+                    if t == "PARAM_VALUE" and m.get_srcComponent() == COMP_ONBOARD and m.param_id == PROBE_PARAM:
                         with self._cond:
-                            self.answered = m.param_index
+                            self.probe_value = m.param_value
                             self._cond.notify_all()
                     self.on_message(m)
 
@@ -115,14 +117,17 @@ class Peer:
         """A message from the companion's side."""
 
     def probe(self, target: int, timeout_s: float = 10.0, source: tuple[int, int] | None = None) -> bool:
-        """Ask companion ``target`` for one of its parameters and wait for it; False after ``timeout_s``."""
+        """Set companion ``target``'s NB_WAIT_MS to a value of this probe's own and wait for the
+        PARAM_VALUE that says so (an answer nothing else sends: the fuzz's own parameter reads and
+        lists cannot pass for it); False after ``timeout_s``. Signed with ``probe_codec`` if set."""
         self._probes += 1
-        k = self._probes % COMPANION_PARAMS
-        codec = self.codec if source is None else new_codec(*source)
+        value = (self._probes % 1024) / 256.0  # (in [0, 4), exact in float32)
+        codec = new_codec(*source) if source is not None else (self.probe_codec or self.codec)
         with self._cond:
-            self.answered = -1
-            self.send(M.MAVLink_param_request_read_message(target, COMP_ONBOARD, b"", k).pack(codec))
-            return self._cond.wait_for(lambda: self.answered == k, timeout_s)
+            self.probe_value = None
+            self.send(M.MAVLink_param_set_message(target, COMP_ONBOARD, PROBE_PARAM.encode(), value,
+                                                  M.MAV_PARAM_TYPE_REAL32).pack(codec))
+            return self._cond.wait_for(lambda: self.probe_value == value, timeout_s)
 
 
 class Station(Peer):

@@ -87,7 +87,7 @@ def kernel_drops(port: int) -> int:
     """Datagrams the kernel dropped at the UDP socket bound to 127.0.0.1:``port`` (a full receive
     buffer): the counts cannot add up if it is not 0. 0 if there is no such socket."""
     try:
-        text = open("/proc/net/udp").read()
+        text = Path("/proc/net/udp").read_text()
     except OSError:
         return 0
     want = f"0100007F:{port:04X}"

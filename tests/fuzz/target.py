@@ -12,10 +12,12 @@ import time
 from pathlib import Path
 
 from triswarm.gcs.stack import free_ports, stop_in_turn
+from triswarm.protocol.mavlink import new_codec, setup_signing
 
 from .peers import FakeFC, Station
 
 START_TIMEOUT_S = 120.0  # a fresh clone's first companion compiles its kernels
+PROBE_LINK_ID = 9  # the signed probes' stream (the fuzz's signed frames are link 7's)
 SETUP_RATES_S = 1.0  # the last step of a companion's set-up measures the telemetry's rates over 0.5 s
 
 
@@ -76,6 +78,9 @@ class CompanionUnderFuzz:
                 raise RuntimeError(f"the companion did not set up (exit {self.proc.poll()}): {self.log_tail()}")
         time.sleep(SETUP_RATES_S)  # (it measures the telemetry's rates, then flies: not a verdict's wait)
         self.station = Station(self.gcs_port)
+        if self.key is not None:  # (the companion takes a parameter set only signed)
+            self.station.probe_codec = new_codec(self.station.codec.srcSystem, self.station.codec.srcComponent)
+            setup_signing(self.station.probe_codec, self.key, PROBE_LINK_ID, clock=time.time)
         if not self.station.probe(self.agent, timeout_s=30.0):
             raise RuntimeError(f"the companion does not answer on its ground-station port: {self.log_tail()}")
 

@@ -38,7 +38,7 @@ from .report import Clock, Report, crashes
 from .target import CompanionUnderFuzz
 
 BATCH = 64
-PACE_S = 0.005  # after each batch: the companion empties its inboxes (256 each) at every tick (100 Hz)
+PACE_S = 0.005  # after each batch, and a probe: the companion empties its inboxes (256 each) at every tick (100 Hz)
 AGENT = 1
 PLAN = Path(__file__).resolve().parents[2] / "examples" / "paper-hexagon.toml"
 BAD_CHUNKS = ("x", "0", "99", "²", "١", "1" * 5000, "-1", "1e3", "01x")
@@ -184,7 +184,8 @@ def fuzz_zenoh(n: int, workdir: Path, seed: int = 4) -> Report:
                                    f"{header_bad + report.sent['estimate.nonfinite_xi']}")
         if counters.get("statuses", 0) < taken_status:
             report.problems.append(f"statuses {counters.get('statuses', 0)}: expected at least {taken_status}")
-    report.other = {"plausible_estimates_sent": plausible, "statuses_taken": counters.get("statuses", 0)}
+    report.other = {"plausible_estimates_sent": plausible, "statuses_taken": counters.get("statuses", 0),
+                    **{k: counters.get(k, 0) for k in ("drop_inbox_full", "drop_status_inbox_full")}}
     report.compare()
     report.problems += [f"crash: {c}" for c in crashes(cuf.log_tail(10**7))]
     return report
@@ -237,6 +238,9 @@ def _fuzz(report: Report, session, cuf, inputs: Inputs, n: int, swarm: str) -> t
             report.inputs += 1
             if (k + 1) % BATCH == 0:
                 time.sleep(PACE_S)
+                if not cuf.station.probe(AGENT):  # (the loop turns: it empties the inboxes as it reads)
+                    report.problems.append(f"the companion stopped answering after {k + 1} inputs")
+                    break
                 if len(publishers) > 256:  # (status keys of random chunks: do not keep them all)
                     for pub in publishers.values():
                         pub.undeclare()
