@@ -123,3 +123,13 @@ def test_a_plan_start_whose_plan_id_is_not_two_halves_is_denied(half):
                                                         0, 0, 1_900_000_000, 500, 0))
     assert [m.result for m in sent] == [M.MAV_RESULT_DENIED, M.MAV_RESULT_DENIED, M.MAV_RESULT_ACCEPTED]
     assert starts == [(0x12345678, 1_900_000_000.5)]
+
+
+def test_a_plan_of_too_many_drones_is_a_plan_error():
+    """drones = 50,000 made the parser build 50,000 x 50,000 graphs: gigabytes, then the OOM killer."""
+    spec = tomllib.loads((EXAMPLES / "large-swarm.toml").read_text())
+    spec["drones"] = 50_000
+    with pytest.raises(PlanError, match="at most 1000"):
+        plan_from_dict(spec, "p.toml")
+    spec["drones"] = 1000
+    assert plan_from_dict(spec, "p.toml").n_agents == 1000
