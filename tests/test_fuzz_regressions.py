@@ -94,6 +94,7 @@ def test_a_topology_family_that_is_not_a_name_is_a_plan_error():
 def test_a_link_counts_empty_datagrams_and_cut_frames():
     """An empty datagram, and one that ends inside a frame, are dropped and counted (they were not)."""
     loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)  # (MavLink.close takes the loop it was read from as the current one)
     link = MavLink("gcs", "udpin:127.0.0.1:0", 1, COMP_ONBOARD)
     got = []
     try:
@@ -105,6 +106,7 @@ def test_a_link_counts_empty_datagrams_and_cut_frames():
         link._readable()
     finally:
         link.close()
+        asyncio.set_event_loop(None)
         loop.close()
     assert [m.get_type() for m in got] == ["HEARTBEAT"]
     assert (link.counters["drop_empty"], link.counters["drop_partial_frame"], link.counters["rx"]) == (2, 1, 1)
