@@ -1,4 +1,5 @@
 # triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks,
+# `make fuzz` fuzzes every face of the companion (100,000 inputs each),
 # `make docs` regenerates the CLI reference docs/cli.md, `make dialect` the MAVLink dialect's module.
 # Every target creates (once) and uses the project's own virtual environment in .venv.
 
@@ -8,7 +9,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
-.PHONY: demo test bench docs dialect venv clean lint netns-tools
+.PHONY: demo test bench fuzz docs dialect venv clean lint netns-tools
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
@@ -58,6 +59,11 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
 	$(ONE_CORE) $(PY) tests/bench/bench_wind.py
 	$(ONE_CORE) $(PY) tests/bench/bench_rates.py
+
+# Every face of the companion under 100,000 inputs each (docs/testing.md#fuzzing): the inputs/s
+# and the counters per face; exits 1 on a crash, a counter off, or a companion that stopped answering
+fuzz: $(STAMP)
+	$(ONE_CORE) $(PY) -m tests.fuzz.run --count 100000
 
 # docs/cli.md: the --help of every command, from the CLI itself
 docs: $(STAMP)

@@ -374,7 +374,7 @@ class Agent:
         report = self.health.report(ages)
         silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
-                      counters=self.bus.counts(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
+                      counters=self.bus.counts(), links=self.link_counters(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
                       state_write_failures=self.store.failed_writes, **self.autopilot.timesync.report())
         return report
@@ -466,11 +466,15 @@ class Agent:
             self.say(f"the flight controller's Unix time stepped {step / 1e6:+.3f} s in flight: not taken, plan time "
                      f"runs on its boot clock", mavlink.MAV_SEVERITY_WARNING)
 
+    def link_counters(self) -> dict:
+        """Each MAVLink link's counters (what it took, dropped and refused, by reason)."""
+        return {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)}
+
     def stats(self) -> dict:
         out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),
                "tick_errors": self.errors, "state_write_failures": self.store.failed_writes,
-               "links": {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)},
-               "fc_clock": self.autopilot.timesync.report()}
+               "links": self.link_counters(), "fc_clock": self.autopilot.timesync.report(),
+               "missions": dict(self.plan_server.counters), "telemetry": dict(self.autopilot.assembler.counters)}
         if self.bus is not None:
             out["zenoh"] = self.bus.counts()
         return out

@@ -17,11 +17,17 @@ In lockstep (``reliable_estimates``) every estimate is awaited, so they are publ
 (TCP). Declarations, liveliness, status and health are reliable and ride TCP.
 
 Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
-thread, tags the payload with the agent whose key it came on and appends it to an inbox (a deque,
-the newest 256 kept); while the loop waits for estimates it also rings a doorbell (a local datagram
-socket pair the asyncio loop watches), so an awaited estimate wakes the loop the moment it arrives
-and the others cost no wake-up at all. Decoding, validation and counting happen in the loop.
-Liveliness and status change rarely: ring channels the loop drains at every tick.
+thread, tags the payload with the agent whose key it came on and puts it in an inbox (the newest
+256 kept, the older ones dropped and counted); while the loop waits for estimates it also rings a
+doorbell (a local datagram socket pair the asyncio loop watches), so an awaited estimate wakes the
+loop the moment it arrives and the others cost no wake-up at all. Decoding, validation and counting
+happen in the loop. Statuses change rarely: an inbox of their own that the loop drains at every
+tick; liveliness: a channel drained likewise.
+
+What the bus drops, it counts (``counts``), by reason: ``drop_undecodable``, ``drop_unknown_agent``,
+``drop_other_plan``, ``drop_old`` (estimates), ``drop_bad_status``, ``drop_bad_liveliness``, and
+``drop_inbox_full`` / ``drop_status_inbox_full`` (more came between two reads than an inbox keeps);
+``estimates`` and ``statuses`` count what it took.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import json
 import math
 import os
 import socket
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -43,7 +50,7 @@ from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
 DEFAULT_ZENOH_BASE_PORT = 17447
-INBOX_SIZE = 256  # estimates handed over and not yet read (the newest kept)
+INBOX_SIZE = 256  # estimates (or statuses) handed over and not yet read (the newest kept)
 ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
                       "net: (handover: app))")
 """One Zenoh worker thread for everything (accept, rx, tx, network): at a few hundred samples per
@@ -107,13 +114,40 @@ class Neighbour:
         return self.xi is not None
 
 
+class _Inbox:
+    """Samples handed from Zenoh's thread to the loop: the newest ``size`` kept; ``dropped`` counts
+    the older ones pushed out."""
+
+    def __init__(self, size: int = INBOX_SIZE) -> None:
+        self.size = size
+        self.items: deque = deque()
+        self.dropped = 0
+        self._lock = threading.Lock()
+
+    def put(self, item) -> None:
+        with self._lock:
+            if len(self.items) >= self.size:
+                self.items.popleft()
+                self.dropped += 1
+            self.items.append(item)
+
+    def take(self) -> deque:
+        """Everything waiting, oldest first."""
+        with self._lock:
+            items, self.items = self.items, deque()
+        return items
+
+    def __bool__(self) -> bool:
+        return bool(self.items)
+
+
 @functools.lru_cache(maxsize=1024)
 def _parse_status(key: str, data: bytes) -> tuple[int, AgentStatus, object] | None:
     """(agent, status, plan) of a status sample, None if it is not a valid one for its key."""
     try:
         msg = json.loads(data)
         agent, status = int(msg["agent"]), AgentStatus[msg["status"]]
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError):  # (Infinity; nesting too deep)
         return None
     if agent_of_key(key) != agent:
         return None
@@ -169,14 +203,19 @@ class Bus:
     def open(self, config: zenoh.Config | zenoh.Session, loop: asyncio.AbstractEventLoop) -> None:
         """Open a session with ``config``, or use a session of the process (its owner closes it)."""
         self.loop = loop
-        self._inbox: deque[bytes] = deque(maxlen=INBOX_SIZE)
+        self._inbox = _Inbox()
+        self._status_inbox = _Inbox()
         self._doorbell, self._bell = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
         for sock in (self._doorbell, self._bell):
             sock.setblocking(False)
         self._own_session = not isinstance(config, zenoh.Session)
         self.session = open_session(config) if self._own_session else config
         s = self.session
-        self._status_sub = s.declare_subscriber(status_key(self.swarm, "*"), zenoh.handlers.RingChannel(256))
+        put_status = self._status_inbox.put
+        self._status_sub = s.declare_subscriber(
+            status_key(self.swarm, "*"),
+            zenoh.handlers.Callback(lambda sample: put_status((str(sample.key_expr), sample.payload.to_bytes())),
+                                    indirect=False))
         self._alive_sub = s.liveliness().declare_subscriber(alive_key(self.swarm, "*"), zenoh.handlers.FifoChannel(1024),
                                                             history=True)
         loop.add_reader(self._doorbell.fileno(), self._answer_door)
@@ -264,7 +303,7 @@ class Bus:
         """The subscriber callback for agent j's key (runs on a Zenoh thread): tag, hand over,
         and ring if the loop is waiting. (Appending before looking at ``waiting``, while the loop
         sets ``waiting`` before it looks at the inbox, loses no wake-up.)"""
-        tag, append, ring = agent.to_bytes(2, "little"), self._inbox.append, self._bell.send
+        tag, append, ring = agent.to_bytes(2, "little"), self._inbox.put, self._bell.send
 
         def handover(sample) -> None:
             append(tag + sample.payload.to_bytes())
@@ -286,7 +325,12 @@ class Bus:
 
     def counts(self) -> dict[str, int]:
         """What the bus took in and what it dropped, by reason."""
-        return dict(self.counters)
+        out = dict(self.counters)
+        for name, inbox in (("drop_inbox_full", self.__dict__.get("_inbox")),
+                            ("drop_status_inbox_full", self.__dict__.get("_status_inbox"))):
+            if inbox is not None and inbox.dropped:
+                out[name] = inbox.dropped
+        return out
 
     # -- the loop ----------------------------------------------------------------------------
 
@@ -295,15 +339,15 @@ class Bus:
         if not self._inbox:
             return
         newest: dict[int, tuple] = {}
-        pop = self._inbox.popleft
-        while self._inbox:
-            data = pop()
+        for data in self._inbox.take():
             checked = self._check(int.from_bytes(data[0:2], "little"), data[2:])
             if checked is None:
                 continue
             earlier = newest.get(checked[0])
             if earlier is None or _newer(checked[6], checked[4], earlier[6], earlier[4]):
                 newest[checked[0]] = checked
+                if earlier is not None:  # (older than one read with it: never used)
+                    self.counters["drop_old"] += 1
             else:
                 self.counters["drop_old"] += 1
         if newest:
@@ -318,8 +362,9 @@ class Bus:
         self.take_estimates()
         while (sample := self._alive_sub.try_recv()) is not None:
             self._alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-        while (sample := self._status_sub.try_recv()) is not None:
-            self._status(str(sample.key_expr), sample.payload.to_bytes())
+        if self._status_inbox:
+            for key, data in self._status_inbox.take():
+                self._status(key, data)
 
     def ready(self, agents: list[int], t_plan_s: float, tolerance_s: float, plans: tuple[int, ...]) -> bool:
         """Whether every agent in ``agents`` has an estimate of one of ``plans`` for plan time
@@ -374,6 +419,7 @@ class Bus:
             self.counters["drop_bad_status"] += 1
             return
         agent, status, plan = parsed
+        self.counters["statuses"] += 1
         if self.statuses.get(agent) != (status, plan):
             self.statuses[agent] = (status, plan)
             self.changes += 1

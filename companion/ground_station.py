@@ -182,6 +182,8 @@ class GroundStation:
         elif msg.command == mavlink.MAV_CMD_TRISWARM_PLAN_START:
             if msg.get_type() != "COMMAND_INT":
                 result, reason = mavlink.MAV_RESULT_DENIED, "plan start needs COMMAND_INT (its time is in x and y)"
+            elif not all(0 <= half <= 0xFFFF and half == int(half) for half in (msg.param1, msg.param2)):  # (NaN fails)
+                result, reason = mavlink.MAV_RESULT_DENIED, "plan start refused: param1 and param2 must be the plan id's halves"
             else:
                 result, reason = self.a.plans.start(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
         elif msg.command in (mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD):

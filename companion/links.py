@@ -6,6 +6,11 @@ pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``
 whose codec has signing set up (``protocol.mavlink.setup_signing``) counts the frames it refuses in
 its counters (``refused_*``), not as bad data.
 
+What a link drops, it counts (``counters``): ``drop_bad_data`` (each piece the parser makes bad
+data of: garbage, a wrong checksum, an unknown message), ``drop_partial_frame`` (a datagram that
+ends inside a frame), ``drop_empty`` (an empty datagram), ``drop_unparseable`` (the parser gave up
+on a datagram); ``rx`` counts the messages taken.
+
 On UDP links every datagram carries the kernel's receive time (SO_TIMESTAMPNS), so the time a
 sample "arrived" includes the wait before the process got to read it; other transports fall back
 to the time of the read. All receive times are Unix time [s].
@@ -124,8 +129,13 @@ class MavLink:
                 if self._serial:
                     self._lost(exc)
                 return
-            if not data:
+            if data is None:  # (nothing more waiting)
                 return
+            if not data:
+                if not self._datagrams:  # (a stream with nothing more waiting)
+                    return
+                self.counters["drop_empty"] += 1
+                continue
             if isinstance(data, str):
                 data = data.encode("latin-1")
             if self._datagrams:
@@ -136,6 +146,8 @@ class MavLink:
                 self.counters["drop_unparseable"] += 1
                 reset_parser(self.codec)
                 continue
+            if self._datagrams and self.codec.buf_len() > 0:  # a datagram that ends inside a frame
+                self.counters["drop_partial_frame"] += 1
             good = []
             for m in msgs:
                 if m.get_type() == "BAD_DATA":
@@ -150,14 +162,14 @@ class MavLink:
             if good:
                 self._on_receive(self, good, t_rx)
 
-    def _recv_datagram(self) -> tuple[bytes, float]:
-        """One datagram and the kernel's receive time; b"" when none is waiting. Keeps pymavlink's
+    def _recv_datagram(self) -> tuple[bytes | None, float]:
+        """One datagram and the kernel's receive time; None when none is waiting. Keeps pymavlink's
         record of the peers of a ``udpin`` link, which its ``write`` answers."""
         conn = self.conn
         try:
             data, ancillary, flags, addr = conn.port.recvmsg(MAX_DATAGRAM, _ANCILLARY)
         except BlockingIOError:
-            return b"", 0.0
+            return None, 0.0
         t_rx = time.time()
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:

@@ -110,7 +110,8 @@ def health_key(swarm: str, agent: int | str = "*") -> str:
 def agent_of_key(key: str) -> int | None:
     """The agent number in ``triswarm/<swarm>/agent/<i>/...``, or None."""
     parts = str(key).split("/")
-    if len(parts) >= 4 and parts[0] == "triswarm" and parts[2] == "agent" and parts[3].isdigit():
+    if (len(parts) >= 4 and parts[0] == "triswarm" and parts[2] == "agent" and parts[3].isascii()
+            and parts[3].isdigit() and len(parts[3]) <= 9):  # (not "²", nor a number of 5000 digits)
         return int(parts[3])
     return None
 

@@ -50,6 +50,11 @@ class PlanError(ValueError):
     """A plan that cannot be flown, with the reason in one sentence."""
 
 
+MAX_DRONES = 1000
+"""The largest swarm a plan may name (the largest measured, docs/benchmarks.md): a plan's graphs
+are N x N, so a plan file naming 50,000 drones would otherwise take gigabytes to read."""
+
+
 DEFAULT_Q = (1.0,) * 6 + (1e4,) * 3 + (1e3,) * 3
 DEFAULT_R = (1e-6,) * 6
 DEFAULT_Q_BAR = (1.0,) * 6 + (1e-4,) * 6
@@ -484,7 +489,7 @@ def _schedule(f: _Fields, n: int) -> Schedule:
             if not isinstance(families, list) or not families:
                 raise PlanError(f"{f.where('families')} must list at least one topology family")
             for name in families:
-                if name not in graph_mod.FAMILIES:
+                if not isinstance(name, str) or name not in graph_mod.FAMILIES:
                     raise PlanError(f"{f.where('families')}: unknown family {name!r} "
                                     f"(known: {', '.join(graph_mod.FAMILIES)})")
                 topologies.append(graph_mod.FAMILIES[name](n))
@@ -523,6 +528,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
         raise PlanError(f"{source}: drones is required")
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise PlanError(f"{source}: drones must be a whole number of at least 1, got {n!r}")
+    if n > MAX_DRONES:
+        raise PlanError(f"{source}: drones must be at most {MAX_DRONES}, got {n}")
     af = _airframe(_Fields(source, "airframe", top.get("airframe")))
     lf = _Fields(source, "leader", top.get("leader"))
     leader = ConstantFormation(lf.array("position_m", (1, 3), [0.0, 0.0, 0.0], per_drone=1),

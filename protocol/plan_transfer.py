@@ -73,7 +73,7 @@ def encode_plan(spec: dict) -> list[PlanItem]:
 
 def field_value(value: float, where: str) -> int:
     """A received field (float or int) back to its integer, or PlanTransferError."""
-    if not (value == value) or value != int(value) or not 0 <= value < 1 << 24:
+    if not 0 <= value < 1 << 24 or value != int(value):  # (NaN and the infinities fail the range)
         raise PlanTransferError(f"{where}: {value!r} is not an integer in [0, 2^24)")
     return int(value)
 

@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import json
 import socket
-import struct
 import threading
 import time
 
 import numpy as np
 import pytest
 from pymavlink import mavutil
-from pymavlink.generator.mavcrc import x25crc
 
 from triswarm.protocol.mavlink import new_codec
 
+from .fuzz.mav import recrc
 from .sitl_helpers import command, connect, sitl_process
 
 M = mavutil.mavlink
@@ -34,15 +33,6 @@ def templates(codec):
         codec.timesync_encode(0, 42),
         codec.heartbeat_encode(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0),
     ]
-
-
-def recrc(frame: bytearray, crc_extra: int) -> bytes:
-    """Recompute a MAVLink 2 frame's checksum (header after the magic byte, payload, crc_extra)."""
-    plen = frame[1]
-    crc = x25crc(bytes(frame[1:10 + plen]))
-    crc.accumulate(struct.pack("B", crc_extra))
-    frame[10 + plen:12 + plen] = struct.pack("<H", crc.crc)
-    return bytes(frame)
 
 
 def make_frames(rng: np.random.Generator) -> list[tuple[str, bytes]]:

@@ -1,0 +1,137 @@
+"""What the fuzzers (tests/fuzz/) found, one test each, on the smallest input that showed it."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import socket
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from triswarm.companion.autopilot import Autopilot
+from triswarm.companion.ground_station import GroundStation
+from triswarm.companion.bus import Bus, Neighbour, _Inbox, _Member, _parse_status
+from triswarm.companion.links import MavLink
+from triswarm.protocol.codec import AgentStatus, Estimate, agent_of_key, encode_estimate
+from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink as M, new_codec
+from triswarm.protocol.plan import PlanError, plan_from_dict
+from triswarm.protocol.plan_transfer import PlanTransferError, field_value
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_attitude_quaternion_is_read():
+    """ATTITUDE_QUATERNION carries q1..q4 (ODOMETRY an array q): reading it raised in every read.
+    A yaw of 0.3 rad in NED (a quarter-angle quaternion about z down) is -0.3 rad in the paper's frame."""
+    fc = Autopilot(1, "udpout:127.0.0.1:9", logging.getLogger("test"), lambda: None)
+    half = 0.15
+    fc.take(M.MAVLink_local_position_ned_message(1000, 1.0, 2.0, -3.0, 0.0, 0.0, 0.0), 0.0)
+    fc.take(M.MAVLink_attitude_quaternion_message(1000, math.cos(half), 0.0, 0.0, math.sin(half), 0.01, 0.02, 0.03,
+                                                  [0.0] * 4), 0.0)
+    s = fc.backlog[-1]
+    assert s.eta_rad == pytest.approx((0.0, 0.0, -0.3), abs=1e-12)
+    assert s.rate_b_rad_s == pytest.approx((0.01, -0.02, -0.03))
+    assert s.position_e_m == pytest.approx((1.0, -2.0, 3.0))
+
+
+@pytest.mark.parametrize("value", [math.inf, -math.inf, math.nan, 0.5, -1.0, float(1 << 24)])
+def test_a_mission_field_that_is_not_an_integer_is_refused(value):
+    """An infinite field raised OverflowError (the upload stayed open, the rest of the datagram was lost)."""
+    with pytest.raises(PlanTransferError):
+        field_value(value, "item 1 field 1")
+
+
+@pytest.mark.parametrize("chunk", ["²", "١", "1" * 5000, "x", "-1", ""])
+def test_a_key_chunk_that_is_not_a_small_ascii_number_names_no_agent(chunk):
+    """"²".isdigit() and "1" * 5000 made int() raise in the Zenoh loop."""
+    assert agent_of_key(f"triswarm/s/agent/{chunk}/status") is None
+    assert agent_of_key("triswarm/s/agent/12/status") == 12
+
+
+@pytest.mark.parametrize("payload", [b'{"agent": Infinity, "status": "IDLE"}', b'{"agent": 1e400, "status": "IDLE"}',
+                                     b"[" * 50000, b'{"agent": NaN, "status": "IDLE"}'])
+def test_a_status_that_does_not_parse_is_none(payload):
+    """Infinity, 1e400 (OverflowError) and deep nesting (RecursionError) raised in the Zenoh loop."""
+    assert _parse_status("triswarm/s/agent/2/status", payload) is None
+    assert _parse_status("triswarm/s/agent/2/status", b'{"agent": 2, "status": "IDLE"}')[:2] == (2, AgentStatus.IDLE)
+
+
+def test_estimates_superseded_in_one_read_are_counted():
+    """Of one agent's estimates read together only the newest is used; the others were dropped
+    uncounted. Now each is drop_old: taken + dropped = received."""
+    bus = Bus("s", 3)
+    bus._inbox = _Inbox()
+    bus.members = {1: _Member(7, frozenset({2}), None, None, None, None)}
+    bus.estimates = {1: Neighbour(), 2: Neighbour()}
+    for seq, t in ((1, 1.0), (3, 3.0), (2, 2.0)):
+        bus._inbox.put((2).to_bytes(2, "little") + encode_estimate(Estimate(2, 7, seq, 0.0, t, AgentStatus.FLYING,
+                                                                              [0.0] * 12)))
+    bus.take_estimates()
+    assert (bus.counters["estimates"], bus.counters["drop_old"]) == (1, 2)
+    assert bus.estimates[2].t_plan_s == 3.0
+
+
+def test_an_inbox_counts_what_it_pushes_out():
+    inbox = _Inbox(size=3)
+    for k in range(5):
+        inbox.put(k)
+    assert list(inbox.take()) == [2, 3, 4] and inbox.dropped == 2 and not inbox
+
+
+def test_a_topology_family_that_is_not_a_name_is_a_plan_error():
+    """families = [[]] raised TypeError (a list is not hashable) instead of a PlanError."""
+    spec = tomllib.loads((EXAMPLES / "paper-hexagon.toml").read_text())
+    spec.setdefault("topology", {})["families"] = [[]]
+    spec["topology"].pop("graphs", None)
+    with pytest.raises(PlanError, match="unknown family"):
+        plan_from_dict(spec, "p.toml")
+
+
+def test_a_link_counts_empty_datagrams_and_cut_frames():
+    """An empty datagram, and one that ends inside a frame, are dropped and counted (they were not)."""
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)  # (MavLink.close takes the loop it was read from as the current one)
+    link = MavLink("gcs", "udpin:127.0.0.1:0", 1, COMP_ONBOARD)
+    got = []
+    try:
+        link.open(loop, lambda lk, msgs, t: got.extend(msgs))
+        frame = M.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3).pack(new_codec(255, 190))
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for data in (b"", frame[:-3], frame, b""):
+                s.sendto(data, link.conn.port.getsockname())
+        link._readable()
+    finally:
+        link.close()
+        asyncio.set_event_loop(None)
+        loop.close()
+    assert [m.get_type() for m in got] == ["HEARTBEAT"]
+    assert (link.counters["drop_empty"], link.counters["drop_partial_frame"], link.counters["rx"]) == (2, 1, 1)
+
+
+@pytest.mark.parametrize("half", [math.nan, math.inf, -1.0, 65536.0, 0.5])
+def test_a_plan_start_whose_plan_id_is_not_two_halves_is_denied(half):
+    """PLAN_START with a NaN or infinite plan-id half raised in the ground-station link's read."""
+    starts, sent = [], []
+    agent = SimpleNamespace(id=1, say=lambda text, severity=None: None,
+                            plans=SimpleNamespace(start=lambda pid, t: starts.append((pid, t)) or (M.MAV_RESULT_ACCEPTED, "")))
+    gs = GroundStation(agent, "udpin:127.0.0.1:0", None)
+    link = SimpleNamespace(send=sent.append)
+    for p1, p2 in ((half, 0x5678), (0x1234, half), (0x1234, 0x5678)):
+        gs._command(link, M.MAVLink_command_int_message(1, COMP_ONBOARD, 0, M.MAV_CMD_TRISWARM_PLAN_START, 0, 0, p1, p2,
+                                                        0, 0, 1_900_000_000, 500, 0))
+    assert [m.result for m in sent] == [M.MAV_RESULT_DENIED, M.MAV_RESULT_DENIED, M.MAV_RESULT_ACCEPTED]
+    assert starts == [(0x12345678, 1_900_000_000.5)]
+
+
+def test_a_plan_of_too_many_drones_is_a_plan_error():
+    """drones = 50,000 made the parser build 50,000 x 50,000 graphs: gigabytes, then the OOM killer."""
+    spec = tomllib.loads((EXAMPLES / "large-swarm.toml").read_text())
+    spec["drones"] = 50_000
+    with pytest.raises(PlanError, match="at most 1000"):
+        plan_from_dict(spec, "p.toml")
+    spec["drones"] = 1000
+    assert plan_from_dict(spec, "p.toml").n_agents == 1000
