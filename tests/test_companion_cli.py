@@ -82,3 +82,50 @@ def test_a_bug_is_not_called_a_user_error(monkeypatch):
     monkeypatch.setattr(config, "resolve_options", broken)
     r = CliRunner().invoke(cli.app, ["--id", "1", "--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0"])
     assert r.exit_code != 2 and isinstance(r.exception, ValueError) and "a bug inside" in str(r.exception)
+
+
+def test_a_silent_flight_controller_is_said_within_seconds(tmp_path):
+    """Against a flight-controller URL where nothing answers (a socket of the test's that only
+    listens), the companion says in one line what it waits for, and where, every few seconds, and
+    keeps asking (its heartbeats reach the socket). Bounded: at most 60 s of wall time for the first
+    line, which comes after 5 s on any machine."""
+    import threading
+    import time
+
+    from triswarm.gcs.stack import free_ports
+
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(("127.0.0.1", 0))
+    silent.settimeout(0.5)
+    port = silent.getsockname()[1]
+    zenoh = free_ports(1)[0]
+    proc = subprocess.Popen(COMPANION + ["--fc", f"udpout:127.0.0.1:{port}", "--gcs", "udpin:127.0.0.1:0",
+                                         "--zenoh-listen", f"tcp/127.0.0.1:{zenoh}", "--state-dir", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not any("waiting" in line for line in lines) and proc.poll() is None:
+            time.sleep(0.2)
+        heard = 0
+        for _ in range(10):
+            try:
+                heard += len(silent.recv(4096)) > 0
+            except TimeoutError:
+                pass
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        silent.close()
+        reader.join(timeout=5)
+        proc.stdout.close()
+    said = [line for line in lines if "waiting" in line]
+    assert said, "".join(lines[-30:])
+    assert f"for a HEARTBEAT from the flight controller (system 1) on udpout:127.0.0.1:{port}" in said[0], said[0]
+    assert heard >= 3  # (it kept asking)
