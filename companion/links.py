@@ -4,7 +4,8 @@ pymavlink provides the transports (``udpin:``, ``udpout:``, ``tcp:``, serial por
 parsed and packed by the project's own codec (``protocol.mavlink``, MAVLink 2), so nothing depends on
 pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``). A link
 whose codec has signing set up (``protocol.mavlink.setup_signing``) counts the frames it refuses in
-its counters (``refused_*``), not as bad data.
+its counters (``refused_*``), not as bad data. On UDP links the datagrams the kernel dropped (its
+receive buffer full: a flood faster than the process reads) are counted too (``drop_kernel``).
 
 On UDP links every datagram carries the kernel's receive time (SO_TIMESTAMPNS), so the time a
 sample "arrived" includes the wait before the process got to read it; other transports fall back
@@ -32,8 +33,10 @@ to one of them. Without it every ground-station command line, on a new port each
 stay a destination for the rest of the flight."""
 MAX_DATAGRAM = 65535
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python does not export it
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # (Linux's): datagrams the kernel dropped, its receive buffer full
 _TIMESPEC = struct.Struct("@qq")
-_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
+_DROPS = struct.Struct("@I")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_DROPS.size)
 
 
 class MavLink:
@@ -46,6 +49,8 @@ class MavLink:
         self.conn = None
         self.counters: Counter[str] = Counter()
         self._on_receive: Callable | None = None
+        self.peer: tuple | None = None
+        """The address the batch being handled came from (UDP; None on other transports)."""
         self.after_read: Callable[[], None] | None = None
         """Called once everything waiting has been read (e.g. to act on the newest sample only)."""
         self._datagrams = False
@@ -59,10 +64,11 @@ class MavLink:
             raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
         self._datagrams = isinstance(self.conn, mavutil.mavudp)
         if self._datagrams:
-            try:
-                self.conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            except OSError:  # not Linux: receive times are read times
-                pass
+            for option in (SO_TIMESTAMPNS, SO_RXQ_OVFL):
+                try:
+                    self.conn.port.setsockopt(socket.SOL_SOCKET, option, 1)
+                except OSError:  # not Linux: receive times are read times, the kernel's drops not counted
+                    pass
         self._on_receive = on_receive
         loop.add_reader(self.conn.fd, self._readable)
 
@@ -121,10 +127,13 @@ class MavLink:
         except BlockingIOError:
             return b"", 0.0
         t_rx = time.time()
+        self.peer = addr
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:
                 sec, nsec = _TIMESPEC.unpack_from(value)
                 t_rx = sec + 1e-9 * nsec
+            elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= _DROPS.size:
+                self.counters["drop_kernel"] = _DROPS.unpack_from(value)[0]  # (the socket's count so far)
         if conn.udp_server:
             conn.clients.add(addr)
             conn.clients_last_alive[addr] = t_rx
