@@ -347,6 +347,7 @@ class Agent:
             for link in (self.autopilot.link, self.gcs.link):
                 link.send(hb)
             self.gcs.tell_refusals()
+            self.gcs.tell_floods()
             self.gcs.keep_signing_streams()
             if self.bus is not None:
                 report = self.health_report()
@@ -376,7 +377,8 @@ class Agent:
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
                       counters=self.bus.counts(), links=self.link_counters(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
-                      state_write_failures=self.store.failed_writes, **self.autopilot.timesync.report())
+                      state_write_failures=self.store.failed_writes, gcs_shed=self.gcs.shed_counts(),
+                      **self.autopilot.timesync.report())
         return report
 
     # -- faults -------------------------------------------------------------------------------------

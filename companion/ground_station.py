@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink, setup_signing
 
 from .links import MavLink, Router
+from .shedding import Episodes, Shedder, TokenBucket
 
 HIGH_RATE = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
                        mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
@@ -38,6 +39,31 @@ HEALTH_VALUES = (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("
                  ("FC_PPM", "fc_clock_drift_ppm"), ("FC_RTT_US", "fc_clock_rtt_min_us"),
                  ("FC_RES_US", "fc_clock_residual_us"))
 """NAMED_VALUE_FLOAT names of the health report's values, sent once a second."""
+GCS_FRAMES_PER_S, GCS_FRAMES_BURST = 100.0, 200.0
+"""Frames of one sender on the ground-station link handled or forwarded (a ground station sends a
+few a second, a joystick's MANUAL_CONTROL 50); beyond: dropped, ``shed_frames``."""
+FC_FORWARD_PER_S, FC_FORWARD_BURST = 200.0, 400.0
+"""Frames from the ground-station link forwarded to the flight controller, all senders together
+(its link carries the actuator commands); beyond: not forwarded, ``shed_fc_forward``."""
+CHECKED_CMDS_PER_S, CHECKED_CMDS_BURST = 2.0, 5.0
+"""Leader commands and plan starts of one sender checked (a leader move is checked against the
+airframe's limits along its way: up to a few milliseconds); beyond: MAV_RESULT_TEMPORARILY_REJECTED,
+``shed_commands``."""
+TEXTS_PER_S, TEXTS_BURST = 5.0, 10.0
+"""Refusals of commands and parameters said in STATUSTEXT; beyond: in their answer only, ``shed_texts``."""
+SHED_WHAT = {"shed_frames": f"frames beyond {GCS_FRAMES_PER_S:g}/s a sender",
+             "shed_fc_forward": f"frames to the flight controller beyond {FC_FORWARD_PER_S:g}/s",
+             "shed_commands": f"leader commands and plan starts beyond {CHECKED_CMDS_PER_S:g}/s a sender",
+             "shed_texts": f"refusals said beyond {TEXTS_PER_S:g}/s"}
+
+
+CHECKED = frozenset({mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD,
+                     mavlink.MAV_CMD_TRISWARM_PLAN_START})
+"""Commands checked against the plan in force (CHECKED_CMDS_PER_S)."""
+
+
+def _address(sender) -> str:
+    return "the link" if sender is None else ":".join(str(part) for part in sender)
 
 
 @dataclass
@@ -95,6 +121,11 @@ class GroundStation:
         self._forwarded_at: dict[int, float] = {}
         self._refusals_told: Counter[str] = Counter()
         self._signing_kept: dict[str, int] = {}
+        self.shed = Shedder(GCS_FRAMES_PER_S, GCS_FRAMES_BURST)
+        self._fc_forward = TokenBucket(FC_FORWARD_PER_S, FC_FORWARD_BURST)
+        self._checked_cmds = Shedder(CHECKED_CMDS_PER_S, CHECKED_CMDS_BURST)
+        self._texts = TokenBucket(TEXTS_PER_S, TEXTS_BURST)
+        self._senders_told, self._sheds_told = Episodes(), Episodes()
 
     # -- routing ----------------------------------------------------------------------------------
 
@@ -117,10 +148,19 @@ class GroundStation:
                 self._for_me(fc_link, msg)
 
     def from_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
-        links = (self.a.autopilot.link, self.link)
+        """Frames from the ground-station link: each sender's within its bucket, the rest shed."""
+        fc_link = self.a.autopilot.link
+        links = (fc_link, self.link)
+        now = time.monotonic()
         for msg in msgs:
+            if not self.shed.take(link.peer, now):
+                link.counters["shed_frames"] += 1
+                continue
             self.router.learn(link, msg)
             for dest in self.router.destinations(link, msg, links):
+                if dest is fc_link and not self._fc_forward.take(now):
+                    link.counters["shed_fc_forward"] += 1
+                    continue
                 dest.write(msg.get_msgbuf())
             if self.router.for_me(msg):
                 self._for_me(link, msg)
@@ -159,7 +199,7 @@ class GroundStation:
             name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
             problem = params.set(name, float(msg.param_value))
             if problem:
-                self.a.say(problem)
+                self._refusal(problem, mavlink.MAV_SEVERITY_INFO)
             if name in params.values:
                 link.send(self._param_value(list(params.values).index(name)))
         elif t in ("COMMAND_LONG", "COMMAND_INT"):
@@ -179,6 +219,9 @@ class GroundStation:
         if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             result = mavlink.MAV_RESULT_ACCEPTED
             link.send(self.a.heartbeat())
+        elif msg.command in CHECKED and not self._checked_cmds.take(link.peer, time.monotonic()):
+            result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # (a flood of them: not checked, not said)
+            self.link.counters["shed_commands"] += 1
         elif msg.command == mavlink.MAV_CMD_TRISWARM_PLAN_START:
             if msg.get_type() != "COMMAND_INT":
                 result, reason = mavlink.MAV_RESULT_DENIED, "plan start needs COMMAND_INT (its time is in x and y)"
@@ -191,11 +234,38 @@ class GroundStation:
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
         if reason:
-            self.a.say(reason, mavlink.MAV_SEVERITY_INFO if result == mavlink.MAV_RESULT_ACCEPTED else mavlink.MAV_SEVERITY_WARNING)
+            self._refusal(reason, mavlink.MAV_SEVERITY_INFO if result == mavlink.MAV_RESULT_ACCEPTED else mavlink.MAV_SEVERITY_WARNING)
         link.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(),
                                                       msg.get_srcComponent()))
 
     # -- what it tells the ground station -------------------------------------------------------------
+
+    def _refusal(self, text: str, severity: int) -> None:
+        """What a command or parameter's answer says, said too (TEXTS_PER_S at most)."""
+        if self._texts.take(time.monotonic()):
+            self.a.say(text, severity)
+        else:
+            self.link.counters["shed_texts"] += 1
+
+    def shed_counts(self) -> dict[str, int]:
+        """What was shed so far, by counter (the health report's ``gcs_shed``)."""
+        return {k: self.link.counters[k] for k in SHED_WHAT}
+
+    def tell_floods(self) -> None:
+        """Once a second: each flood said when it begins and when it ends, by sender and by counter."""
+        now = time.monotonic()
+        began, ended = self._senders_told.look(self.shed.dropped, now)
+        for sender, _ in began:
+            self.a.say(f"ground station at {_address(sender)} floods: frames beyond {GCS_FRAMES_PER_S:g}/s dropped "
+                       f"and counted (gcs_shed in the health report) until it stops", mavlink.MAV_SEVERITY_WARNING)
+        for sender, n, lasted in ended:
+            self.a.say(f"ground station at {_address(sender)}: flood over, {n} frames dropped in {lasted:.0f} s")
+        counts = self.shed_counts()
+        began, ended = self._sheds_told.look({k: n for k, n in counts.items() if k != "shed_frames"}, now)
+        for key, _ in began:
+            self.a.say(f"shedding {SHED_WHAT[key]} (gcs_shed {key})", mavlink.MAV_SEVERITY_WARNING)
+        for key, n, lasted in ended:
+            self.a.say(f"shedding over: {n} {SHED_WHAT[key]} in {lasted:.0f} s")
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """A text longer than 50 bytes goes in chunks (MAVLink 2 id, chunk_seq)."""
@@ -214,6 +284,7 @@ class GroundStation:
             value = report.get(key)
             if value is not None:
                 self.link.send(mavlink.MAVLink_named_value_float_message(boot_ms, name.encode(), float(value)))
+        self.link.send(mavlink.MAVLink_named_value_float_message(boot_ms, b"GCS_SHED", float(sum(report["gcs_shed"].values()))))
         for j, age in report["neighbour_age_ms"].items():
             if age is not None:
                 self.link.send(mavlink.MAVLink_named_value_float_message(boot_ms, f"NB{j}_AGEMS".encode(), age))

@@ -4,7 +4,8 @@ pymavlink provides the transports (``udpin:``, ``udpout:``, ``tcp:``, serial por
 parsed and packed by the project's own codec (``protocol.mavlink``, MAVLink 2), so nothing depends on
 pymavlink's environment-chosen dialect. Links are read from the asyncio loop (``add_reader``). A link
 whose codec has signing set up (``protocol.mavlink.setup_signing``) counts the frames it refuses in
-its counters (``refused_*``), not as bad data.
+its counters (``refused_*``), not as bad data. On UDP links the datagrams the kernel dropped (its
+receive buffer full: a flood faster than the process reads) are counted too (``drop_kernel``).
 
 What a link drops, it counts (``counters``): ``drop_bad_data`` (each piece the parser makes bad
 data of: garbage, a wrong checksum, an unknown message), ``drop_partial_frame`` (a datagram that
@@ -45,13 +46,15 @@ to one of them. Without it every ground-station command line, on a new port each
 stay a destination for the rest of the flight."""
 MAX_DATAGRAM = 65535
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python does not export it
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # (Linux's): datagrams the kernel dropped, its receive buffer full
 _TIMESPEC = struct.Struct("@qq")
-_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
+_DROPS = struct.Struct("@I")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_DROPS.size)
 REOPEN_EVERY_S = 1.0
+"""A serial port that failed is tried again this often [s, wall]."""
 SERIAL_TX_QUEUE_BYTES = 4096
 """A frame that would queue more than this on a serial port is dropped (at 921600 baud, 44 ms of
 line; the loop sends a command every 5 ms)."""
-"""A serial port that failed is tried again this often [s, wall]."""
 
 
 class MavLink:
@@ -64,6 +67,8 @@ class MavLink:
         self.conn = None
         self.counters: Counter[str] = Counter()
         self._on_receive: Callable | None = None
+        self.peer: tuple | None = None
+        """The address the batch being handled came from (UDP; None on other transports)."""
         self.after_read: Callable[[], None] | None = None
         """Called once everything waiting has been read (e.g. to act on the newest sample only)."""
         self.on_event: Callable[[str], None] = lambda text: None
@@ -93,10 +98,11 @@ class MavLink:
         self._datagrams = isinstance(self.conn, mavutil.mavudp)
         self._serial = isinstance(self.conn, mavutil.mavserial)
         if self._datagrams:
-            try:
-                self.conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            except OSError:  # not Linux: receive times are read times
-                pass
+            for option in (SO_TIMESTAMPNS, SO_RXQ_OVFL):
+                try:
+                    self.conn.port.setsockopt(socket.SOL_SOCKET, option, 1)
+                except OSError:  # not Linux: receive times are read times, the kernel's drops not counted
+                    pass
         self._loop.add_reader(self.conn.fd, self._readable)
 
     def close(self) -> None:
@@ -171,10 +177,13 @@ class MavLink:
         except BlockingIOError:
             return None, 0.0
         t_rx = time.time()
+        self.peer = addr
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:
                 sec, nsec = _TIMESPEC.unpack_from(value)
                 t_rx = sec + 1e-9 * nsec
+            elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= _DROPS.size:
+                self.counters["drop_kernel"] = _DROPS.unpack_from(value)[0]  # (the socket's count so far)
         if conn.udp_server:
             conn.clients.add(addr)
             conn.clients_last_alive[addr] = t_rx

@@ -356,6 +356,10 @@ def _link(layout: Layout, name: str, listen: bool, protocols: list[str]) -> dict
     return {"protocols": protocols, "tx": {"lease": 1000, "keep_alive": 4}, "tls": tls}
 
 
+RETRY = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+"""How routers and clients try again a router out of reach (Zenoh's connect.retry)."""
+
+
 def router_config(layout: Layout, swarm: str, drones: int, routers: list[Router], router: Router,
                   listen_host: str = "0.0.0.0") -> dict:
     listen = f"[{listen_host}]" if ":" in listen_host else listen_host
@@ -367,7 +371,7 @@ def router_config(layout: Layout, swarm: str, drones: int, routers: list[Router]
         # last one to none), tries again every 0.2-1 s when one is out of reach, never gives up
         "connect": {"endpoints": [r.mesh_endpoint for r in routers[routers.index(router) + 1:]],
                     "timeout_ms": {"router": -1}, "exit_on_failure": {"router": False},
-                    "retry": {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}},
+                    "retry": dict(RETRY)},
         "scouting": {"multicast": {"enabled": False}},
         "transport": {"unicast": {"max_links": 2},
                       "link": _link(layout, router.name, listen=True, protocols=["tls", "quic"])},
@@ -378,7 +382,9 @@ def router_config(layout: Layout, swarm: str, drones: int, routers: list[Router]
 def client_config(layout: Layout, name: str, routers: list[Router]) -> dict:
     return {
         "mode": "client",
-        "connect": {"endpoints": [r.endpoint for r in routers]},
+        # a router that went away (restarted) tried again every 0.2 s, backing off to 1 s (Zenoh's
+        # default: 4 s)
+        "connect": {"endpoints": [r.endpoint for r in routers], "retry": dict(RETRY)},
         "scouting": {"multicast": {"enabled": False}},
         "transport": {"unicast": {"max_links": 2}, "link": _link(layout, name, listen=False, protocols=["tls"])},
     }

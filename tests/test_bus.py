@@ -149,6 +149,14 @@ def deploy_config(name: str, **endpoints: list[str]) -> zenoh.Config:
     return tune(cfg)
 
 
+def shipped_clients(one: Bus, two: Bus, router: list[str], loop) -> None:
+    """Agents 1 and 2 as companions in client mode of ``router`` (the shipped configuration), 2 listening to 1."""
+    one.open(deploy_config("companion-client.json5", connect=router), loop)
+    two.open(deploy_config("companion-client.json5", connect=router), loop)
+    one.join(1, PLAN, frozenset())
+    two.join(2, PLAN, frozenset({1}))
+
+
 def test_shipped_configs_client_through_a_router(swarm):
     """deploy/zenoh: two companions in client mode reach each other through a router."""
     port = free_ports(1)[0]
@@ -160,10 +168,7 @@ def test_shipped_configs_client_through_a_router(swarm):
         router = zenoh.open(deploy_config("router.json5", listen=here))
         one, two = Bus(swarm, 2), Bus(swarm, 2)
         try:
-            one.open(deploy_config("companion-client.json5", connect=here), loop)
-            two.open(deploy_config("companion-client.json5", connect=here), loop)
-            one.join(1, PLAN, frozenset())
-            two.join(2, PLAN, frozenset({1}))
+            shipped_clients(one, two, here, loop)
             assert await until(lambda: 1 in two.alive, 10.0, [one, two])
             assert await until(lambda: (one.publish_estimate(1, XI, 5.0, AgentStatus.FLYING) or True)
                                and two.estimates[1].heard, 10.0, [two])
