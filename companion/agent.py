@@ -94,6 +94,8 @@ class CompanionOptions:
     swarm: str | None = None
     stats_path: Path | None = None
     signing_key_path: Path | None = None
+    gcs_frames_per_s: float = 100.0
+    """Frames a second of one sender on the ground-station link (a burst of twice that); 0: no limit."""
 
 
 class Agent:

@@ -42,6 +42,9 @@ def companion(
     zenoh_mode: Annotated[str, typer.Option(help="Zenoh mode with --zenoh-listen/--zenoh-connect: peer or client.")] = "peer",
     zenoh_base_port: Annotated[int, typer.Option(help="Default peers on loopback: agent i uses TCP and UDP port base+i.")] = 17447,
     rate_hz: Annotated[float, typer.Option(help="Control rate [Hz] (the telemetry rate it asks for).")] = 200.0,
+    gcs_frames_per_s: Annotated[float, typer.Option(help="Frames a second one ground station may send beyond a burst "
+                                                         "of twice that; beyond: dropped, counted and said once "
+                                                         "(0: no limit).")] = 100.0,
     state_dir: Annotated[Optional[Path], typer.Option(help="Keep the plan and mission here, to resume after a restart "
                                                            "({id} in the path: the drone's number).")] = None,
     swarm: Annotated[Optional[str], typer.Option(help="Swarm name in the Zenoh key space (default: the plan's name).")] = None,
@@ -93,6 +96,7 @@ def companion(
     zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
     zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
     swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
+    gcs_frames_per_s = o["gcs_frames_per_s"]
     from .agent import CompanionOptions, StartupError
     from .host import CountingLoop, agent_options, run_agents
 
@@ -103,7 +107,8 @@ def companion(
                                 start_at_unix_s=start_at, zenoh_config=zenoh_config,
                                 zenoh_listen=tuple(zenoh_listen or ()), zenoh_connect=tuple(zenoh_connect or ()),
                                 zenoh_mode=zenoh_mode, zenoh_base_port=zenoh_base_port, rate_hz=rate_hz,
-                                state_dir=state_dir, swarm=swarm, stats_path=stats, signing_key_path=signing_key)
+                                state_dir=state_dir, swarm=swarm, stats_path=stats, signing_key_path=signing_key,
+                                gcs_frames_per_s=gcs_frames_per_s)
         every = agent_options(opts, [(id, fc, gcs), *agents])
 
         async def main() -> list[dict]:

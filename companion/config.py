@@ -47,6 +47,7 @@ _KEYS: dict[str, tuple[str, str]] = {
     "autostart": ("autostart", "bool"),
     "start_at": ("start_at", "float"),
     "rate_hz": ("rate_hz", "float"),
+    "gcs_frames_per_s": ("gcs_frames_per_s", "float"),
     "state_dir": ("state_dir", "path"),
     "swarm": ("swarm", "str"),
     "stats": ("stats", "path"),
@@ -160,6 +161,8 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
         raise ConfigError(f"--id must be a MAVLink system id between 1 and 255, got {values['id']}")
     if not (math.isfinite(values["rate_hz"]) and 1.0 <= values["rate_hz"] <= 2000.0):
         raise ConfigError(f"--rate-hz must be between 1 and 2000, got {values['rate_hz']}")
+    if not (math.isfinite(values.get("gcs_frames_per_s", 100.0)) and values.get("gcs_frames_per_s", 100.0) >= 0):
+        raise ConfigError(f"--gcs-frames-per-s must be a non-negative number (0: no limit), got {values['gcs_frames_per_s']}")
     if values.get("start_at") is not None and not math.isfinite(values["start_at"]):
         raise ConfigError(f"--start-at must be a finite number of seconds, got {values['start_at']}")
     if values.get("zenoh_mode") not in ("peer", "client"):

@@ -40,8 +40,9 @@ HEALTH_VALUES = (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("
                  ("FC_RES_US", "fc_clock_residual_us"))
 """NAMED_VALUE_FLOAT names of the health report's values, sent once a second."""
 GCS_FRAMES_PER_S, GCS_FRAMES_BURST = 100.0, 200.0
-"""Frames of one sender on the ground-station link handled or forwarded (a ground station sends a
-few a second, a joystick's MANUAL_CONTROL 50); beyond: dropped, ``shed_frames``."""
+"""Frames of one sender on the ground-station link handled or forwarded, by default
+(``--gcs-frames-per-s``, with a burst of twice that: a ground station sends a few a second, a
+joystick's MANUAL_CONTROL 50); beyond: dropped, ``shed_frames``."""
 FC_FORWARD_PER_S, FC_FORWARD_BURST = 200.0, 400.0
 """Frames from the ground-station link forwarded to the flight controller, all senders together
 (its link carries the actuator commands); beyond: not forwarded, ``shed_fc_forward``."""
@@ -51,7 +52,7 @@ airframe's limits along its way: up to a few milliseconds); beyond: MAV_RESULT_T
 ``shed_commands``."""
 TEXTS_PER_S, TEXTS_BURST = 5.0, 10.0
 """Refusals of commands and parameters said in STATUSTEXT; beyond: in their answer only, ``shed_texts``."""
-SHED_WHAT = {"shed_frames": f"frames beyond {GCS_FRAMES_PER_S:g}/s a sender",
+SHED_WHAT = {"shed_frames": "frames beyond --gcs-frames-per-s a sender",
              "shed_fc_forward": f"frames to the flight controller beyond {FC_FORWARD_PER_S:g}/s",
              "shed_commands": f"leader commands and plan starts beyond {CHECKED_CMDS_PER_S:g}/s a sender",
              "shed_texts": f"refusals said beyond {TEXTS_PER_S:g}/s"}
@@ -121,7 +122,8 @@ class GroundStation:
         self._forwarded_at: dict[int, float] = {}
         self._refusals_told: Counter[str] = Counter()
         self._signing_kept: dict[str, int] = {}
-        self.shed = Shedder(GCS_FRAMES_PER_S, GCS_FRAMES_BURST)
+        rate = agent.opts.gcs_frames_per_s or math.inf  # (0: no limit, as for a fuzzer or a trusted link)
+        self.shed = Shedder(rate, GCS_FRAMES_BURST / GCS_FRAMES_PER_S * rate)
         self._fc_forward = TokenBucket(FC_FORWARD_PER_S, FC_FORWARD_BURST)
         self._checked_cmds = Shedder(CHECKED_CMDS_PER_S, CHECKED_CMDS_BURST)
         self._texts = TokenBucket(TEXTS_PER_S, TEXTS_BURST)
@@ -256,7 +258,7 @@ class GroundStation:
         now = time.monotonic()
         began, ended = self._senders_told.look(self.shed.dropped, now)
         for sender, _ in began:
-            self.a.say(f"ground station at {_address(sender)} floods: frames beyond {GCS_FRAMES_PER_S:g}/s dropped "
+            self.a.say(f"ground station at {_address(sender)} floods: frames beyond {self.shed.rate_per_s:g}/s dropped "
                        f"and counted (gcs_shed in the health report) until it stops", mavlink.MAV_SEVERITY_WARNING)
         for sender, n, lasted in ended:
             self.a.say(f"ground station at {_address(sender)}: flood over, {n} frames dropped in {lasted:.0f} s")

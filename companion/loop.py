@@ -48,7 +48,7 @@ class Tick:
 
     def __init__(self, agent, sample) -> None:
         self.agent, self.sample = agent, sample
-        self.v = None
+        self.v = self.xi = None
 
 
 class ControlLoop:
@@ -254,6 +254,8 @@ class ControlLoop:
         self._check_waiting(list(self.waiting.values()))
 
     def _check_waiting(self, ticks: list[Tick]) -> None:
+        # (only ticks still waiting: an estimate that came meanwhile may have finished some already)
+        ticks = [t for t in ticks if self.waiting.get(t.agent) is t]
         ready = [t for t in ticks if t.agent.bus.ready(t.expected, t.t_p, 0.5 * t.agent.dt_s, t.agent.plans_on_bus)]
         for t in ready:
             del self.waiting[t.agent]
@@ -395,8 +397,9 @@ class ControlLoop:
                     now = time.time()
                     a.health.tick(s.t_rx, now)
                     a.health.telemetry_age.add(now - a.autopilot.unix(s.boot_us))
-                    if a.health.ticks % FORMATION_ERROR_EVERY == 0 and a.flight.phase == Phase.FLYING:
-                        err = t.xhat[9:12] - t.h[9:12] - t.x0[9:12]  # from its place now (its own reference)
+                    if a.health.ticks % FORMATION_ERROR_EVERY == 0 and a.flight.phase == Phase.FLYING and t.xi is not None:
+                        # (a tick of the formation, not of a hold: from its place now, its own reference)
+                        err = t.xhat[9:12] - t.h[9:12] - t.x0[9:12]
                         a.health.formation_error.add(float(np.sqrt(err @ err)))
                 except Exception:
                     a.tick_failed()

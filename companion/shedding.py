@@ -50,6 +50,8 @@ class Shedder:
     total_dropped: int = 0
 
     def take(self, sender, now_s: float) -> bool:
+        if self.rate_per_s == math.inf:  # (no limit)
+            return True
         bucket = self.buckets.pop(sender, None)
         if bucket is None:
             bucket = TokenBucket(self.rate_per_s, self.burst)

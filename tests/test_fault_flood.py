@@ -137,6 +137,7 @@ def test_a_ground_station_flood_is_shed_and_the_formation_holds(tmp_path, paper_
         wait_sim(rec.now, start + FLOOD_AT, stack)
         flooder = Flooder(stack.gcs_ports[0], FLOOD_FRAMES, FLOOD_HZ, rec.now() - start + 1.0)
         flooder.start()
+        flood_port = flooder.conn.port.getsockname()[1]  # (before it closes)
         cleanup.callback(flooder.close)
         wait_for(lambda: flooder.sent > FLOOD_FRAMES // 4, 30.0, "a quarter of the flood sent")
 
@@ -194,7 +195,7 @@ def test_a_ground_station_flood_is_shed_and_the_formation_holds(tmp_path, paper_
     assert health["gcs_shed"]["shed_frames"] > 0 and health["gcs_shed"]["shed_commands"] > 0, measured
 
     log = stack.log("companion-1")
-    port = flooder.conn.port.getsockname()[1]
+    port = flood_port
     assert log.count(f"ground station at 127.0.0.1:{port} floods") == 1, log[-3000:]  # said once
     assert log.count(f"ground station at 127.0.0.1:{port}: flood over") == 1, log[-3000:]
     for i in range(1, N + 1):
