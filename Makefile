@@ -51,6 +51,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_formations.py
 	$(ONE_CORE) $(PY) tests/bench/bench_sitl.py
 	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 6 --seconds 50
+	$(ONE_CORE) $(PY) tests/bench/bench_soak.py --minutes 30
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 0
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 1 --sizes 2,4,6,8
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
