@@ -54,6 +54,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 6 --duration-s 50
 	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 24 --duration-s 30
 	$(ONE_CORE) $(PY) tests/bench/bench_lockstep.py --sizes 100 --duration-s 42 --judge-from 38
+	$(ONE_CORE) $(PY) tests/bench/bench_soak.py --minutes 30
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 0
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 1 --sizes 2,4,6,8
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
