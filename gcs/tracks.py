@@ -1,0 +1,182 @@
+"""Tracks: every drone's position and attitude as its flight controller reports them (ATTITUDE and
+LOCAL_POSITION_NED from system i, component 1), in the paper's frame and on plan time. One piece of
+logic for the live recorder (``recorder.py``) and for a run's log read afterwards (``runlog.py``).
+
+Samples are kept as they came: per drone and stream (boot time, receive time, value), and the
+SYSTEM_TIME offsets (Unix time - boot time). Each stream is timed and interpolated on its own
+stamps, so attitude and position need not share an instant or a rate.
+
+The clock rule: a track runs on the drone's boot clock from the first SYSTEM_TIME of each boot
+(every sample of that boot, also those that came before it, is its boot time plus that offset; a
+later step of the Unix time, someone setting the clock, does not move what was flown). A boot time
+that goes back by a second or more (``REBOOT_JUMP_US``) is a new boot. A boot without any
+SYSTEM_TIME is timed by its receive times.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from triswarm.companion.telemetry import REBOOT_JUMP_US
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, attitude_to_paper, local_ned_to_paper
+from triswarm.protocol.metrics import wrap_angle
+
+STREAMS = ("ATTITUDE", "LOCAL_POSITION_NED")
+
+
+class TrackError(ValueError):
+    """A track that cannot be made, with the reason in one sentence."""
+
+
+@dataclass
+class StreamSamples:
+    """One drone's samples of one message, in the order they came."""
+
+    boot_s: list[float] = field(default_factory=list)
+    received_unix_s: list[float] = field(default_factory=list)
+    boot: list[int] = field(default_factory=list)
+    """Which of the drone's boots (an index into DroneSamples.boot_offsets_s) the sample is of."""
+    values: list[np.ndarray] = field(default_factory=list)
+
+    def copy(self) -> "StreamSamples":
+        return StreamSamples(list(self.boot_s), list(self.received_unix_s), list(self.boot), list(self.values))
+
+
+@dataclass
+class DroneSamples:
+    """One drone's attitude (paper Euler angles [rad]) and position (paper earth frame [m]) samples,
+    and per boot its first SYSTEM_TIME's offset (NaN until heard)."""
+
+    attitude: StreamSamples = field(default_factory=StreamSamples)
+    position: StreamSamples = field(default_factory=StreamSamples)
+    boot_offsets_s: list[float] = field(default_factory=list)
+    newest_boot_s: float = -math.inf
+    """The newest boot time heard in the current boot."""
+    system_times: int = 0
+    heard_unix_s: float = math.nan
+    """The drone's clock as last heard: its current boot's offset + newest_boot_s, or as it was
+    before a boot whose SYSTEM_TIME has not come yet."""
+
+    def _boot_of(self, boot_s: float) -> int:
+        if not self.boot_offsets_s or boot_s < self.newest_boot_s - REBOOT_JUMP_US / 1e6:
+            self.boot_offsets_s.append(math.nan)
+            self.newest_boot_s = boot_s
+        self.newest_boot_s = max(self.newest_boot_s, boot_s)
+        if not math.isnan(self.boot_offsets_s[-1]):
+            self.heard_unix_s = self.boot_offsets_s[-1] + self.newest_boot_s
+        return len(self.boot_offsets_s) - 1
+
+    def take(self, received_unix_s: float, msg) -> bool:
+        """Keep msg if it is one of the flight controller's ATTITUDE, LOCAL_POSITION_NED or
+        SYSTEM_TIME (with a Unix time); the caller has checked its system id."""
+        kind = msg.get_type()
+        if msg.get_srcComponent() != COMP_AUTOPILOT:
+            return False
+        if kind == "SYSTEM_TIME":
+            if msg.time_unix_usec <= 0:
+                return False
+            boot = self._boot_of(msg.time_boot_ms / 1000.0)
+            if math.isnan(self.boot_offsets_s[boot]):
+                self.boot_offsets_s[boot] = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+                self.heard_unix_s = self.boot_offsets_s[boot] + self.newest_boot_s
+            self.system_times += 1
+            return True
+        if kind == "ATTITUDE":
+            stream, value = self.attitude, attitude_to_paper(msg.roll, msg.pitch, msg.yaw)
+        elif kind == "LOCAL_POSITION_NED":
+            stream, value = self.position, local_ned_to_paper(msg.x, msg.y, msg.z)
+        else:
+            return False
+        stream.boot.append(self._boot_of(msg.time_boot_ms / 1000.0))
+        stream.boot_s.append(msg.time_boot_ms / 1000.0)
+        stream.received_unix_s.append(received_unix_s)
+        stream.values.append(value)
+        return True
+
+    def copy(self) -> "DroneSamples":
+        return DroneSamples(self.attitude.copy(), self.position.copy(), list(self.boot_offsets_s), self.newest_boot_s,
+                            self.system_times, self.heard_unix_s)
+
+
+@dataclass(frozen=True)
+class Track:
+    """One drone's streams on plan time, each sorted with one sample per instant."""
+
+    attitude_t_s: np.ndarray
+    euler_rad: np.ndarray
+    """(A, 3) unwrapped along the track."""
+    position_t_s: np.ndarray
+    position_m: np.ndarray
+    """(P, 3)."""
+    clock: str
+    """What timed its samples: "SYSTEM_TIME" or "received" (no SYSTEM_TIME in any boot)."""
+
+    @property
+    def span_s(self) -> tuple[float, float]:
+        """The plan time both streams cover."""
+        return max(self.attitude_t_s[0], self.position_t_s[0]), min(self.attitude_t_s[-1], self.position_t_s[-1])
+
+
+def _timed(stream: StreamSamples, offsets_s: np.ndarray, start_unix_s: float) -> tuple[np.ndarray, np.ndarray]:
+    offset = offsets_s[np.asarray(stream.boot, dtype=int)]
+    unix = np.where(np.isnan(offset), stream.received_unix_s, offset + np.asarray(stream.boot_s))
+    t, first = np.unique(unix - start_unix_s, return_index=True)
+    return t, np.asarray(stream.values).reshape(-1, 3)[first]
+
+
+def track(drone: DroneSamples, start_unix_s: float, name: str = "drone") -> Track:
+    """A drone's samples on plan time t = unix time - start_unix_s."""
+    for kind, stream in zip(STREAMS, (drone.attitude, drone.position)):
+        if not stream.values:
+            raise TrackError(f"no {kind} from {name}")
+    offsets = np.asarray(drone.boot_offsets_s, dtype=float)
+    t_att, eta = _timed(drone.attitude, offsets, start_unix_s)
+    t_pos, pos = _timed(drone.position, offsets, start_unix_s)
+    return Track(t_att, np.unwrap(eta, axis=0), t_pos, pos,
+                 "SYSTEM_TIME" if not np.isnan(offsets).all() else "received")
+
+
+def common_span_s(tracks: list[Track]) -> tuple[float, float]:
+    """The plan time every track covers (empty if the first exceeds the second)."""
+    spans = [tr.span_s for tr in tracks]
+    return max(lo for lo, _ in spans), min(hi for _, hi in spans)
+
+
+def on_grid(tracks: list[Track], t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position (T, N, 3) [m], Euler angles (T, N, 3) [rad] wrapped to (-pi, pi]) at plan times t_s,
+    each stream interpolated linearly on its own stamps (held at its ends)."""
+    position_m = np.empty((t_s.size, len(tracks), 3))
+    euler_rad = np.empty((t_s.size, len(tracks), 3))
+    for i, tr in enumerate(tracks):
+        for c in range(3):
+            position_m[:, i, c] = np.interp(t_s, tr.position_t_s, tr.position_m[:, c])
+            euler_rad[:, i, c] = wrap_angle(np.interp(t_s, tr.attitude_t_s, tr.euler_rad[:, c]))
+    return position_m, euler_rad
+
+
+class LiveTracks:
+    """Samples fed as messages arrive (one thread), read as consistent snapshots (any thread)."""
+
+    def __init__(self, sysids) -> None:
+        self._lock = threading.Lock()
+        self._drones = {s: DroneSamples() for s in sysids}
+
+    def take(self, sysid: int, received_unix_s: float, msg) -> bool:
+        with self._lock:
+            return self._drones[sysid].take(received_unix_s, msg)
+
+    def heard_unix_s(self, sysid: int) -> float:
+        """The drone's clock as last heard (Unix time; NaN before its first SYSTEM_TIME)."""
+        with self._lock:
+            return self._drones[sysid].heard_unix_s
+
+    def snapshot(self) -> dict[int, DroneSamples]:
+        with self._lock:
+            return {s: d.copy() for s, d in self._drones.items()}
+
+    def tracks(self, start_unix_s: float) -> dict[int, Track]:
+        return {s: track(d, start_unix_s, f"vehicle {s}") for s, d in sorted(self.snapshot().items())}
