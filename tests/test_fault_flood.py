@@ -137,9 +137,9 @@ def test_a_ground_station_flood_is_shed_and_the_formation_holds(tmp_path, paper_
         wait_sim(rec.now, start + FLOOD_AT, stack)
         flooder = Flooder(stack.gcs_ports[0], FLOOD_FRAMES, FLOOD_HZ, rec.now() - start + 1.0)
         flooder.start()
-        flood_port = flooder.conn.port.getsockname()[1]  # (before it closes)
         cleanup.callback(flooder.close)
         wait_for(lambda: flooder.sent > FLOOD_FRAMES // 4, 30.0, "a quarter of the flood sent")
+        flood_port = flooder.conn.port.getsockname()[1]  # (bound by its first send; read before it closes)
 
         # the real ground station, in the flood: a parameter read, a command, a leader move
         t_plan = rec.now() - start
