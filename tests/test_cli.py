@@ -16,6 +16,7 @@ def triswarm(*args, cwd=None, timeout=120):
                           cwd=cwd, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_short_sim_writes_summary_telemetry_and_figures(tmp_path):
     out = tmp_path / "run"
     r = triswarm("sim", "paper-hexagon", "--duration-s", "4", "--out", str(out), "--seed", "3")
@@ -94,6 +95,7 @@ def test_infeasible_formation_in_a_scenario_file(tmp_path):
     assert "fails the feasibility condition (76): drone 3 position rows 10-12" in line
 
 
+@pytest.mark.slow
 def test_wind_flags_and_wind_tables_bad_input(tmp_path):
     for cmd in (("sim", "--duration-s", "2"), ("sitl", "up", "-n", "1")):
         assert "--wind-m-s must be a finite number (not negative), got -3.0" in bad(tmp_path, *cmd, "--wind-m-s", "-3")
@@ -162,6 +164,7 @@ def test_leader_goto_takes_negative_coordinates(tmp_path):
     assert r.returncode == 2 and "no such swarm manifest" in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_sim_refuses_an_uncertified_schedule_unless_forced(tmp_path):
     """`sim --drones 30` of a plan that names the paper's families: refused like plan check would;
     --force flies it anyway, with the reason as a warning."""

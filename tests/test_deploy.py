@@ -246,6 +246,7 @@ def wheels(tmp_path_factory):
 # -- the deploys --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_install_rerun_upgrade_failures_and_rollback(sshd, wheels, tmp_path):
     root = prepared_root(tmp_path)
     cfg = drone_config(tmp_path / "cfg")
