@@ -110,10 +110,11 @@ class MavLink:
             self._reopen.cancel()
             self._reopen = None
         if self.conn is not None:
-            try:
-                asyncio.get_event_loop().remove_reader(self.conn.fd)
-            except (RuntimeError, ValueError):
-                pass
+            if self._loop is not None and not self._loop.is_closed():  # (the loop it was read from, not a new one)
+                try:
+                    self._loop.remove_reader(self.conn.fd)
+                except (RuntimeError, ValueError):
+                    pass
             self.conn.close()
             self.conn = None
 

@@ -86,9 +86,3 @@ def random_states(rng, n, max_pitch=1.2):
     x[:, 9:12] = rng.uniform(-20, 20, (n, 3))
     return x
 
-
-def pytest_collection_modifyitems(session, config, items) -> None:
-    """The whole-scenario tests (``slow``) first, in their files' order: two workers then share them
-    from the start instead of one finishing the last of them alone (a stable sort: every xdist
-    worker collects the same order)."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
