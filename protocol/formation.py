@@ -7,8 +7,7 @@ their first and second derivatives; the offsets in x_r coordinates are then
     h_dot = [p_ddot, eta_ddot, eta_dot, p_dot]
 
 so the velocity rows are the derivatives of the position rows by construction and the feasibility
-condition (76) holds. A formation given as raw 12-vectors is checked by ``design.check_feasibility``.
-"""
+condition (76) holds. A formation given as raw 12-vectors is checked by ``design.check_feasibility``."""
 
 from __future__ import annotations
 
@@ -60,8 +59,7 @@ class Formation:
 
 def _as_agents(name: str, value, n: int) -> np.ndarray:
     arr = np.array(value, dtype=float)
-    if arr.shape == (3,):
-        arr = np.tile(arr, (n, 1))
+    arr = np.tile(arr, (n, 1)) if arr.shape == (3,) else arr
     if arr.shape != (n, 3):
         raise ParameterError(f"formation {name} must be 3 numbers or one triple per agent ({n}), got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
@@ -118,8 +116,7 @@ class ConstantFormation(Formation):
 def paper_attitudes(n_agents: int) -> np.ndarray:
     """The case study's attitudes (a plan's ``attitude_rad = "paper-alternating"``): (-0.5, -0.5, 0.5)
     * (-1)^i rad for drone i = 1 .. n, (n, 3)."""
-    sign = np.array([(-1.0) ** i for i in range(1, n_agents + 1)])
-    return np.stack([-0.5 * sign, -0.5 * sign, 0.5 * sign], axis=1)
+    return np.outer([(-1.0) ** i for i in range(1, n_agents + 1)], [-0.5, -0.5, 0.5])
 
 
 @dataclass(frozen=True)
@@ -566,8 +563,7 @@ class Row(Formation):
 
 @dataclass(frozen=True)
 class Rows(Formation):
-    """Rows ``indices`` (from 0) of ``formation``, in that order: the part of a swarm's formation
-    that some of its agents fly."""
+    """Rows ``indices`` (from 0) of ``formation``, in order: the part of a swarm's formation some agents fly."""
 
     formation: Formation
     indices: tuple[int, ...]
@@ -581,8 +577,7 @@ class Rows(Formation):
         return Kinematics(k.p[r], k.p_dot[r], k.p_ddot[r], k.eta[r], k.eta_dot[r], k.eta_ddot[r])
 
     def offsets(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        h, h_dot = self.formation.offsets(t_s)
-        r = list(self.indices)
+        (h, h_dot), r = self.formation.offsets(t_s), list(self.indices)
         return h[r], h_dot[r]
 
 

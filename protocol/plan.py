@@ -19,8 +19,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
     [controller]      rate_hz, thrust_adaptation_rate_1_s, air_density_kg_m3 (the drag the controllers cancel)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
-    [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's
-"""
+    [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
 
 from __future__ import annotations
 
