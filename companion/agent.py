@@ -377,7 +377,8 @@ class Agent:
         report = self.health.report(ages)
         silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
-                      counters=self.bus.counts(), links=self.link_counters(), t=now, fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
+                      counters=self.bus.counts(), links=self.link_counters(), t=now,
+                      fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
                       state_write_failures=self.store.failed_writes, gcs_shed=self.gcs.shed_counts(),
                       **self.autopilot.timesync.report())

@@ -21,12 +21,15 @@ from collections.abc import Callable
 from triswarm.protocol.mavlink import mavlink
 from triswarm.protocol.timesync import ClockFit, Exchange, TimesyncFilter
 
+from .telemetry import REBOOT_JUMP_US
+
 EVERY_S = 0.2
 """A request this often [s, wall] (PX4 sends its own at 10 Hz)."""
 OUTSTANDING = 64
 """Requests remembered for their answer."""
-REBOOT_JUMP_NS = 1_000_000_000
-"""An answer this far off the fitted line: the flight controller's clock started again [ns]."""
+REBOOT_JUMP_NS = REBOOT_JUMP_US * 1000
+"""An answer this far off the fitted line: the flight controller's clock started again [ns] (the
+telemetry's rule)."""
 
 
 class TimeSync:
