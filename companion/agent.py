@@ -39,6 +39,7 @@ from triswarm.protocol import model
 from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.formation import RelativeTo
 from triswarm.protocol.mavlink import mavlink
+from triswarm.protocol.stall import Stalls
 
 from triswarm.protocol.timesync import start_clock_problem
 
@@ -143,6 +144,9 @@ class Agent:
         self.fc_lost_since: float | None = None
         """Since when the flight controller is lost [s, time.monotonic] (None: it is not)."""
         self._fc_back: asyncio.Task | None = None
+        self.stalls = Stalls(period_s=1.0)
+        """This process's own stalls, seen by the once-a-second work: not counted as the flight
+        controller's silence."""
         self._last_boot: tuple[int, float] | None = None  # (boot ms, monotonic s) of the newest sample looked at
         self._told_plans: set[tuple[int, object]] = set()
         self._told_clock_step: int | None = None
@@ -380,6 +384,7 @@ class Agent:
                       counters=self.bus.counts(), links=self.link_counters(), t=now,
                       fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
+                      stalls={"count": self.stalls.count, "longest_s": round(self.stalls.longest_s, 2)},
                       state_write_failures=self.store.failed_writes, gcs_shed=self.gcs.shed_counts(),
                       **self.autopilot.timesync.report())
         return report
@@ -387,13 +392,15 @@ class Agent:
     # -- faults -------------------------------------------------------------------------------------
 
     def watch_fc(self) -> None:
-        """Once a second: a flight controller set up and silent for FC_SILENT_S is lost; a lost one
-        heard again is taken back."""
+        """Once a second: a flight controller set up and silent for FC_SILENT_S (while this process
+        ran: ``Stalls``) is lost; a lost one heard again is taken back."""
         fc, heard = self.autopilot, self.fc_heard_s
+        now = time.monotonic()
+        self.stalls.look(now)
         if heard is None:
             return
         if self.fc_lost_since is None:
-            silent = time.monotonic() - heard
+            silent = self.stalls.silent_s(heard, now)
             if fc.ready and silent > FC_SILENT_S:
                 self.fc_lost(f"nothing heard from it for {silent:.1f} s")
         elif heard > self.fc_lost_since and self._fc_back is None:

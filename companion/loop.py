@@ -32,6 +32,7 @@ import numpy as np
 from triswarm.protocol.agent import no_leader, pinned_input, protocol_rows
 from triswarm.protocol.codec import AgentStatus
 from triswarm.protocol.mavlink import CustomMode
+from triswarm.protocol.stall import Stalls
 
 from .flight import Phase
 
@@ -63,6 +64,9 @@ class ControlLoop:
         self._timer_at = float("inf")
         self._buses: set = set()
         self._agents = agents
+        self.stalls = Stalls(period_s=LOCKSTEP_RECHECK_S)
+        """Lockstep: this process's own stalls, seen by the looks at who is alive, are not counted as
+        a neighbour's silence."""
 
     def watch(self, bus) -> None:
         """Estimates arriving on ``bus`` may complete waiting ticks."""
@@ -285,6 +289,7 @@ class ControlLoop:
     def _timeout(self) -> None:
         self._timer, self._timer_at = None, float("inf")
         now = time.monotonic()
+        self.stalls.look(now)
         for bus in self._buses:
             bus.drain()
         done = []
@@ -306,13 +311,13 @@ class ControlLoop:
 
     def _lockstep_recheck(self, t: Tick, now: float) -> bool:
         """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness
-        and status tell), and after NB_WATCHDOG_S of wall time the live ones that never published
-        (hung), saying so. True when the rest are in."""
+        and status tell), and after NB_WATCHDOG_S of wall time (in which this process ran) the live
+        ones that never published (hung), saying so. True when the rest are in."""
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
         tolerance = 0.5 * a.dt_s
-        if now - t.since_wall > NB_WATCHDOG_S:
+        if self.stalls.silent_s(t.since_wall, now) > NB_WATCHDOG_S:
             late = [j for j in t.expected if not a.bus.ready([j], t.t_p, tolerance, a.plans_on_bus)]
             if late:
                 for j in late:

@@ -18,6 +18,7 @@ not the run). This module keeps the books; ``server.py`` moves the datagrams.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from triswarm.protocol.mavlink import mavlink
@@ -94,12 +95,14 @@ class Lockstep:
             self.waited_wall_s[i] += now_wall - waiting[1]
         return said
 
-    def overdue(self, now_wall: float, sim_s: float) -> tuple[list[int], list[int]]:
-        """(vehicles whose state to send again, vehicles taken out now by the watchdog)."""
+    def overdue(self, now_wall: float, sim_s: float, counted_from_wall: float = -math.inf) -> tuple[list[int], list[int]]:
+        """(vehicles whose state to send again, vehicles taken out now by the watchdog). Silence is
+        counted from ``counted_from_wall`` at the earliest: the end of the SITL's own latest stall
+        (``protocol.stall``), in which nothing could be heard."""
         offer, dropped = [], []
         for i, waiting in list(self.awaiting.items()):
             t_us, sent_wall, offered_wall = waiting
-            if now_wall - sent_wall > self.options.timeout_s:
+            if now_wall - max(sent_wall, counted_from_wall) > self.options.timeout_s:
                 del self.awaiting[i]
                 self.members.discard(i)
                 self.left.append((i, sim_s))

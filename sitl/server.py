@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from triswarm.protocol import frames
 from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
+from triswarm.protocol.stall import Stalls
 
 from .fc import LINKS
 from .lockstep import ATTITUDE_IDS, HIGH_RATE_IDS, Lockstep, LockstepOptions
@@ -482,6 +483,7 @@ class SitlServer:
         self._report = (time.monotonic(), self.swarm.time_s)
         told_missing = time.monotonic()
         standing = (time.monotonic(), self.swarm.steps)  # (wall time, step) the clock last moved
+        stalls = Stalls(period_s=LOCKSTEP_POLL_S)  # (the SITL's own: not counted as a companion's silence)
         self._lockstep_running = True
         try:
             self._advance()
@@ -502,7 +504,7 @@ class SitlServer:
                     for i in range(self.swarm.n):
                         for name in LINKS:
                             self._send_batch(i, name, [mavlink.MAVLINK_MSG_ID_HEARTBEAT])
-                offer, dropped = ls.overdue(now, self.swarm.time_s)
+                offer, dropped = ls.overdue(now, self.swarm.time_s, stalls.look(now))
                 for i in offer:
                     self._offer(i)
                 for i in dropped:

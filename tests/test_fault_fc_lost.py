@@ -40,7 +40,10 @@ FC_SILENT_S = 3.0  # companion.agent.FC_SILENT_S
 LOST_MARGIN_S = 4.0
 """Wall time beyond FC_SILENT_S + 1 s (the once-a-second look) for the companions to say it (a
 loaded two-core machine)."""
-OUTAGE_S = 10.0  # wall time the flight controllers stay dead
+OUTAGE_S = 10.0  # wall time the flight controllers stay dead, at least
+REPORTS_JUDGED = 4  # health reports of agent 1 during the outage, at least (it lasts until they came)
+OUTAGE_WITHIN_S = 60.0  # wall time for them to come
+ANSWER_WITHIN_S = 30.0  # wall time for the companion's answer to a parameter read during the outage
 TURNS_BOUND = 200
 """Turns of the companions' event loop between two of an agent's health reports (1 s apart) while
 its flight controllers are gone. What wakes it then: each agent's once-a-second work, the Zenoh
@@ -49,6 +52,12 @@ RESUMED_WITHIN_S = 18.0
 """Plan time from flying again (the entry begins 1 s later: 3 s climb, 12 s blend) to within the
 bounds."""
 JUDGED_S = 5.0
+
+
+def logged(stack, words: tuple[str, ...]) -> list[str]:
+    """What the stack's processes logged with any of ``words`` (for a failure to tell what happened)."""
+    return [line[:300] for name in sorted(stack.procs) for line in stack.log(name).splitlines()
+            if any(w in line for w in words) and "real-time factor" not in line]
 
 
 def cpu_seconds(pid: int) -> float:
@@ -72,7 +81,8 @@ def test_sitl_killed_mid_flight_then_started_again(tmp_path, paper_spec):
         companions = stack.procs[stack.process_of[1]]
         wait_sim(rec.now, start + KILL_AT, stack)
         ok, worst = judge(plan, rec, start, 16.0, KILL_AT)
-        assert ok, f"before the kill: {worst}"
+        measured["worst_before"] = worst
+        assert ok, (f"before the kill: {worst}", logged(stack, ("hold", "lost", "lockstep", "late", "refused")))
 
         stack.kill_sitl(signal.SIGKILL)
         t_kill = time.monotonic()
@@ -82,20 +92,25 @@ def test_sitl_killed_mid_flight_then_started_again(tmp_path, paper_spec):
         measured["lost_said_after_s"] = round(time.monotonic() - t_kill, 2)
         assert measured["lost_said_after_s"] >= FC_SILENT_S, measured  # (not before it was silent that long)
 
-        # no crash, no spin: the loop's turns between health reports over the rest of the outage
+        # no crash, no spin: the loop's turns between health reports over the rest of the outage (at
+        # least OUTAGE_S of wall time, and REPORTS_JUDGED reports: a loaded machine may run the
+        # companions' once-a-second work less often, never the verdict)
         reports0 = len(bus.health[1])
         cpu0, wall0 = cpu_seconds(companions.pid), time.monotonic()
         gcs.send(gcs.conn.mav.param_request_read_encode(1, 191, b"CTRL_RATE_HZ", -1))
-        time.sleep(OUTAGE_S - (wall0 - t_kill))
+        lost_reports = lambda: [h for h in bus.health[1][max(reports0 - 1, 0):] if h["fc_lost"]]  # noqa: E731
+        wait_for(lambda: len(lost_reports()) > REPORTS_JUDGED and time.monotonic() - t_kill >= OUTAGE_S, OUTAGE_WITHIN_S,
+                 f"{REPORTS_JUDGED + 1} health reports of agent 1 with its flight controller lost")
         measured["cpu_while_lost"] = round((cpu_seconds(companions.pid) - cpu0) / (time.monotonic() - wall0), 3)  # (told)
+        measured["outage_s"] = round(time.monotonic() - t_kill, 1)
         assert companions.poll() is None, stack.log("companion-1")[-3000:]
-        lost = [h for h in bus.health[1][reports0 - 1:] if h["fc_lost"]]
+        lost = lost_reports()
         turns = [b["loop_turns"] - a["loop_turns"] for a, b in zip(lost, lost[1:])]
         measured["loop_turns_per_report_while_lost"] = max(turns)
-        assert len(turns) >= 4 and max(turns) <= TURNS_BOUND, (turns, measured)
+        assert max(turns) <= TURNS_BOUND, (turns, measured)
 
         # it answered its ground station, and told it, with its heartbeat's state
-        assert gcs.wait_for("PARAM_VALUE", 5.0, param_id="CTRL_RATE_HZ"), "no answer during the outage"
+        assert gcs.wait_for("PARAM_VALUE", ANSWER_WITHIN_S, param_id="CTRL_RATE_HZ"), "no answer during the outage"
         texts = "".join(m.text for m in gcs.heard("STATUSTEXT", srcSystem=1, srcComponent=191))  # (chunks, in order)
         assert "companion 1: flight controller lost: nothing heard from it" in texts, texts
         hb = gcs.heard("HEARTBEAT", srcSystem=1, srcComponent=191)
