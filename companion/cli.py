@@ -141,6 +141,9 @@ def write_stats(path: Path, stats: dict) -> None:
 
 
 def main() -> None:
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")  # (Zenoh's own log: RUST_LOG=zenoh=debug for more)
     app()
 
 

@@ -328,7 +328,7 @@ def _check_zenoh(c: Checks, v: dict[str, Any]) -> None:
     except ImportError as exc:
         c.fail("zenoh", f"eclipse-zenoh is not importable ({exc})")
         return
-    from .bus import open_session
+    from .bus import close_session, open_session
 
     box: dict[str, Any] = {}
 
@@ -366,7 +366,7 @@ def _check_zenoh(c: Checks, v: dict[str, Any]) -> None:
             c.ok("zenoh", f"session opened in {time.monotonic() - t0:.1f} s ({where}); "
                           f"{len(routers)} router(s), {len(peers)} peer(s) seen")
     finally:
-        session.close()
+        close_session(session)
 
 
 def _check_signing_key(c: Checks, path: Path | None) -> None:

@@ -20,7 +20,7 @@ from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import PlanError, plan_from_dict
 
 from .agent import Agent, CompanionOptions
-from .bus import Bus, default_config, open_session, peer_config, tune
+from .bus import Bus, close_session, default_config, open_session, peer_config, tune
 from .flight import SharedEntry
 from .loop import ControlLoop
 
@@ -137,7 +137,7 @@ class Host:
             for bus in self._buses.values():
                 bus.close()
             if self._session is not None:
-                self._session.close()
+                close_session(self._session)
         for r in results:
             if isinstance(r, BaseException):
                 raise r

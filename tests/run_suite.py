@@ -1,7 +1,8 @@
 """`make test`: every test, in the least wall time that keeps the real-time ones honest.
 
 Two pytest runs:
-- the tests on simulated time or with no clock at all, on two workers (pytest-xdist);
+- the tests on simulated time or with no clock at all, on two workers (pytest-xdist; a worker
+  that runs out of tests takes some of the other's, so neither idles while a long one is queued);
 - the few that judge something on the wall clock (marked ``realtime``), in one process.
 
 As root, the real-time run goes beside the other, ahead of it: niceness -10 in a session of its own
@@ -33,7 +34,7 @@ PYTEST = [sys.executable, "-m", "pytest"]
 
 
 def main(args: list[str]) -> int:
-    simulated = PYTEST + ["-n", "2", "-m", "not realtime", *args]
+    simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", *args]
     realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", *args]
     if os.geteuid() != 0:
         first = subprocess.call(simulated, cwd=ROOT)
