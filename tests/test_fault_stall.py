@@ -14,11 +14,12 @@ their own would lose each other's Zenoh sessions in such a stall: Zenoh's lease,
 on the wall clock too; they hold until the sessions are back, docs/companion.md.)
 
 What the stall does to the formation is measured and told, not judged here, because it is not
-right yet: in about one run of five the three drones diverged silently after the SITL woke first
-(11 m within 2 s of plan time, nothing logged by any process), and once, on a loaded machine, an
-agent found its two neighbours' estimates a second of plan time old right after the stall and held,
-then rejoined from 9.6 m. Two lockstep runs are otherwise the same however slow the machine is
-(``test_lockstep_determinism.py``); what a stall of the SITL breaks in that is not found yet."""
+right yet: in 3 runs of 10 the formation left the paper's bounds after the stalls, once diverging
+(11 m within 2 s of plan time), with nothing logged by any process and no answer applied to the
+wrong state by the SITL; and once, on a loaded machine, an agent found its two neighbours'
+estimates a second of plan time old right after the stall and held, then rejoined from 9.6 m. Two
+lockstep runs are otherwise the same however slow the machine is (``test_lockstep_determinism.py``);
+what a stall breaks in that is not found yet (docs/companion.md, "Limit: a stall in lockstep")."""
 
 import json
 import math
