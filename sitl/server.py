@@ -373,8 +373,12 @@ class SitlServer:
             k = next((n for n, e in enumerate(pending) if e[0] > step), len(pending))
             msgs, self._pending[i] = [(msg_id, msg) for _, msg_id, msg in pending[:k]], pending[k:]
         peers = link.live_peers(now_wall)
-        if not peers:
+        awaited = self.lockstep is not None and name == "companion"
+        if not peers and not awaited:
             return
+        # (in lockstep a companion's state is awaited even with no peer to send it to: one silent
+        # for PEER_TIMEOUT_S of wall time, or one that a stall of this process made look so, gets
+        # it again when it speaks (``_offer``), and the clock stands meanwhile, never steps without it)
         now_s = self.swarm.time_s
         rows = self.swarm.sensor_rows()
         msgs += [(msg_id, self._build(i, msg_id, now_s, rows)) for msg_id in ids]
@@ -387,7 +391,7 @@ class SitlServer:
             if msg_id in key_ids:
                 key_us = max(key_us, msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else msg.time_usec)
         self._sendto(link, bytes(data), peers)
-        if self.lockstep is not None and name == "companion" and key_us >= 0:
+        if awaited and key_us >= 0:
             self._last_keyed[i] = bytes(data)
             self.lockstep.sent(i, key_us, now_wall)
 
