@@ -22,6 +22,10 @@ import math
 from dataclasses import dataclass, field
 
 from triswarm.protocol.mavlink import mavlink
+from triswarm.protocol.stall import Stalls
+
+NO_STALLS = Stalls(period_s=math.inf)
+"""A watcher that never stalled: silence is wall time."""
 
 HIGH_RATE_IDS = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
                            mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ODOMETRY,
@@ -95,14 +99,15 @@ class Lockstep:
             self.waited_wall_s[i] += now_wall - waiting[1]
         return said
 
-    def overdue(self, now_wall: float, sim_s: float, counted_from_wall: float = -math.inf) -> tuple[list[int], list[int]]:
+    def overdue(self, now_wall: float, sim_s: float, stalls: Stalls | None = None) -> tuple[list[int], list[int]]:
         """(vehicles whose state to send again, vehicles taken out now by the watchdog). Silence is
-        counted from ``counted_from_wall`` at the earliest: the end of the SITL's own latest stall
-        (``protocol.stall``), in which nothing could be heard."""
+        counted as ``stalls`` (the SITL's own, looked at already) says: not over a stall of the SITL,
+        in which nothing could be heard."""
+        stalls = stalls or NO_STALLS
         offer, dropped = [], []
         for i, waiting in list(self.awaiting.items()):
             t_us, sent_wall, offered_wall = waiting
-            if now_wall - max(sent_wall, counted_from_wall) > self.options.timeout_s:
+            if stalls.silent_s(sent_wall, now_wall) > self.options.timeout_s:
                 del self.awaiting[i]
                 self.members.discard(i)
                 self.left.append((i, sim_s))

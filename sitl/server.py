@@ -508,7 +508,8 @@ class SitlServer:
                     for i in range(self.swarm.n):
                         for name in LINKS:
                             self._send_batch(i, name, [mavlink.MAVLINK_MSG_ID_HEARTBEAT])
-                offer, dropped = ls.overdue(now, self.swarm.time_s, stalls.look(now))
+                stalls.look(now)
+                offer, dropped = ls.overdue(now, self.swarm.time_s, stalls)
                 for i in offer:
                     self._offer(i)
                 for i in dropped:

@@ -85,4 +85,3 @@ def random_states(rng, n, max_pitch=1.2):
     x[:, 8] = rng.uniform(-np.pi, np.pi, n)
     x[:, 9:12] = rng.uniform(-20, 20, (n, 3))
     return x
-
