@@ -11,12 +11,13 @@ ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM
 
 .PHONY: demo test bench fuzz docs dialect venv clean lint netns-tools
 
+# (--no-compile: modules are compiled when first imported, not all of them at install: half the set-up's time)
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "triswarm needs Python >= 3.11, found " + sys.version.split()[0]'
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
-	$(PY) -m pip install --quiet --no-deps 'MAVProxy==1.8.75'
+	$(PY) -m pip install --quiet --no-compile -e '.[test]'
+	$(PY) -m pip install --quiet --no-compile --no-deps 'MAVProxy==1.8.75'
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -128,8 +128,10 @@ def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metr
 
 def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], log: RunLog, run: Path,
                   fig_paths: list[Path]) -> None:
+    judged = bool((log.t_s >= perf.window_start_s).any())
     table = Table(title=f"{name}: worst errors over [{perf.window_start_s:g} s, {log.t_s[-1]:.1f} s] of the flight "
-                        f"controllers' telemetry")
+                        "controllers' telemetry" if judged else
+                        f"{name}: the flight controllers' telemetry, to {log.t_s[-1]:.1f} s")
     table.add_column("drone", justify="right")
     table.add_column("pos [m]", justify="right")
     table.add_column("att [rad]", justify="right")
@@ -138,12 +140,18 @@ def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], l
     for row in per_drone:
         table.add_row(str(row["drone"]), short_number(row["worst_position_error_m"]),
                       short_number(row["worst_attitude_error_rad"]),
-                      f"{row['largest_gap_s']:.2f}", "[green]within[/]" if row["within_bounds"] else "[red]outside[/]")
+                      f"{row['largest_gap_s']:.2f}", "[green]within[/]" if row["within_bounds"] else
+                      "[red]outside[/]" if judged else "[red]not judged[/]")
     console.print(table)
-    verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
-    console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
-                  f"(worst {short_number(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
-                  f"{short_number(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
+    if not judged:
+        console.print(f"formation [red]not judged[/]: the telemetry ends at {log.t_s[-1]:.1f} s of plan time, before "
+                      f"the settled window starts at {perf.window_start_s:g} s (fly longer, or judge from earlier: "
+                      f"triswarm plot {run} --window-start-s S)")
+    else:
+        verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
+        console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
+                      f"(worst {short_number(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
+                      f"{short_number(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
     if log.tlog.skipped_bytes:
         console.print(f"gcs.tlog: {log.tlog.frames} frames read; {log.tlog.skipped_bytes} bytes skipped "
                       f"in {log.tlog.skipped_runs} places (garbage or broken frames)")

@@ -256,7 +256,7 @@ def test_plan_check_says_and_flies_the_drag_term_of_a_plan_in_still_air(tmp_path
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["controller"]["air_density_kg_m3"] == 1.2 and summary["ok"] is True
-    r = plan_check(paper_plan_variant(tmp_path, still))
+    r = plan_check(paper_plan_variant(tmp_path, still), "--no-simulate")  # (flown just above)
     assert "rho = 1.2 kg/m^3, C_d A = 0.02 m^2" in r.stdout, r.stdout
     off = paper_plan_variant(tmp_path, [(still[0][0], "thrust_adaptation_rate_1_s = 3.0\nair_density_kg_m3 = 0.0\n"
                                          + still[0][1].split("\n", 1)[1])])

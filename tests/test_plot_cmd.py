@@ -8,6 +8,7 @@ stock MAVLink 2 module into a .tlog with garbage, a truncated and a corrupt fram
 import csv
 import json
 import os
+import re
 import struct
 import subprocess
 import sys
@@ -206,6 +207,18 @@ def test_a_drone_off_its_place_fails(tmp_path, bounds):
     assert summary["performance"]["worst_position_error_drone"] == 2 and not summary["performance"]["within_bounds"]
     assert [d["within_bounds"] for d in summary["per_drone"]] == [True, False, True]
     assert "outside" in result.stdout
+
+
+def test_a_window_after_the_telemetry_is_not_judged(good_run):
+    """A flight shorter than the settled window is neither within nor outside the bounds: it is said
+    to be not judged, with what to do, and the exit status is not a pass."""
+    run_dir = good_run[0]
+    result = triswarm("plot", str(run_dir), "--window-start-s", "40")
+    assert result.returncode == 1, result.stdout + result.stderr
+    out = " ".join(result.stdout.split())
+    assert re.search(r"formation not judged: the telemetry ends at 3[12]\.\d s of plan time, before the settled "
+                     r"window starts at 40 s \(fly longer, or judge from earlier: triswarm plot ", out), out
+    assert "outside" not in out and "within" not in out
 
 
 @pytest.mark.parametrize("breakage, message", [
