@@ -13,8 +13,12 @@ table. Each agent reads only its in-neighbours' entries, and only those of the p
 Transport: every session has a TCP and a UDP link to each peer (``transport/unicast/max_links``
 2). Estimates are published best effort (express, dropped under congestion) and so ride UDP: a
 lost estimate is replaced by the next one a period later, and nothing waits for a retransmission.
+Every ``COPY_EVERY``-th estimate also goes reliably, on TCP: a UDP path that dies while TCP lives
+(on a lossy network, Zenoh's UDP listener can stop taking a peer's datagrams for good, all its
+peers' at once) then costs a neighbour's estimates their latency, not the neighbour. The copies
+that arrive after the best-effort original are dropped as old (``drop_old``).
 In lockstep (``reliable_estimates``) every estimate is awaited, so they are published reliably
-(TCP). Declarations, liveliness, status and health are reliable and ride TCP.
+(TCP) and no copy is sent. Declarations, liveliness, status and health are reliable and ride TCP.
 
 Zenoh callbacks only hand samples to the loop: an estimate subscriber's callback runs on the Zenoh
 thread, tags the payload with the agent whose key it came on and puts it in an inbox (the newest
@@ -51,6 +55,7 @@ from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
 DEFAULT_ZENOH_BASE_PORT = 17447
+COPY_EVERY = 2  # every how many best-effort estimates (UDP) one also goes reliably (TCP)
 INBOX_SIZE = 256  # estimates (or statuses) handed over and not yet read (the newest kept)
 ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
                       "net: (handover: app))")
@@ -175,6 +180,8 @@ class _Member:
     status_publisher: object
     health_publisher: object
     token: object
+    copy_publisher: object = None
+    """The reliable copies' publisher (None in lockstep: every estimate is reliable then)."""
     seq: int = 0
     previous_plan_id: int | None = None
     """After a plan change in flight, the plan before it: its estimates still count (neighbours
@@ -261,7 +268,8 @@ class Bus:
         self.members[agent] = _Member(plan_id, frozenset(listen_to), self._estimate_publisher(agent),
                                       s.declare_publisher(status_key(self.swarm, agent)),
                                       s.declare_publisher(health_key(self.swarm, agent)),
-                                      s.liveliness().declare_token(alive_key(self.swarm, agent)))
+                                      s.liveliness().declare_token(alive_key(self.swarm, agent)),
+                                      None if self.reliable else self._estimate_publisher(agent, copies=True))
         self.estimates.setdefault(agent, Neighbour())
         for j in listen_to:
             self.estimates.setdefault(j, Neighbour())
@@ -272,8 +280,10 @@ class Bus:
         member = self.members.pop(agent, None)
         if member is None:
             return
-        for declared in (member.publisher, member.status_publisher, member.health_publisher, member.token):
-            declared.undeclare()
+        for declared in (member.publisher, member.status_publisher, member.health_publisher, member.token,
+                         member.copy_publisher):
+            if declared is not None:
+                declared.undeclare()
         self._resubscribe()
 
     def switch_plan(self, agent: int, plan_id: int) -> None:
@@ -292,13 +302,19 @@ class Bus:
         for agent, m in self.members.items():
             m.publisher.undeclare()
             m.publisher = self._estimate_publisher(agent)
+            if m.copy_publisher is not None:
+                m.copy_publisher.undeclare()
+                m.copy_publisher = None
 
-    def _estimate_publisher(self, agent: int):
-        reliable = self.reliable
+    def _estimate_publisher(self, agent: int, copies: bool = False):
+        """Agent ``agent``'s estimates: reliable in lockstep, else best effort; ``copies``: the
+        reliable copies beside the best-effort ones, dropped rather than waited for when TCP's queue
+        is full."""
+        reliable, block = self.reliable or copies, self.reliable and not copies
         return self.session.declare_publisher(
             estimate_key(self.swarm, agent), express=True,
             reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP)
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)
 
     def _resubscribe(self) -> None:
         """Subscribe to exactly the estimates of the agents some member listens to and that fly
@@ -458,7 +474,10 @@ class Bus:
         nb = self.estimates[agent]
         nb.seq, nb.stamp_s, nb.t_plan_s, nb.status, nb.plan_id, nb.received_at, nb.xi = \
             m.seq, now, t_plan_s, status, m.plan_id, now, xi
-        m.publisher.put(encode_estimate(Estimate(agent, m.plan_id, m.seq, now, t_plan_s, status, xi)))
+        data = encode_estimate(Estimate(agent, m.plan_id, m.seq, now, t_plan_s, status, xi))
+        m.publisher.put(data)
+        if m.copy_publisher is not None and m.seq % COPY_EVERY == 0:
+            m.copy_publisher.put(data)
 
     def publish_status(self, agent: int, status: AgentStatus, reason: str = "", since_s: float | None = None) -> None:
         """The status, why, and since when (Unix time [s]). Sent at every change and once a second,

@@ -4,6 +4,9 @@ reason, and a closed peer's liveliness goes."""
 
 import asyncio
 import json
+import os
+import subprocess
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -12,9 +15,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from triswarm.companion.bus import Bus, close_session, default_config, peer_config, tune
+from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_config, peer_config, tune
 from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
+
+from .netem import NetNamespace, need_netns
 
 PLAN = 0x5EED
 XI = np.linspace(-1.0, 1.0, 12)
@@ -198,3 +203,23 @@ def test_a_close_its_peers_do_not_answer_ends_the_process_as_usual(caplog):
         close_session(session)
     assert session.closed
     assert "the session's close timed out (close operation timed out!)" in caplog.text
+
+
+def test_estimates_still_arrive_when_the_udp_path_dies(tmp_path):
+    """In a network namespace of the test's: agent 1's estimates flow on UDP (best effort), then every
+    UDP packet is dropped. Zenoh goes on sending into the dead link until its lease ends it; the
+    reliable copy of every COPY_EVERY-th estimate, on TCP, arrives all the same. Judged on sequence
+    numbers, not on time."""
+    need_netns()
+    out = tmp_path / "cut.json"
+    with NetNamespace(f"triswarm-cut-{os.getpid()}") as ns:
+        run = subprocess.run(ns.exec_prefix() + [sys.executable, str(Path(__file__).with_name("udp_cut.py")), str(out),
+                                                 "17000"], capture_output=True, text=True, timeout=120)  # (ports: the namespace is ours alone)
+    assert run.returncode == 0, run.stderr[-4000:]
+    r = json.loads(out.read_text())
+    print("MEASURED " + json.dumps({k: v if k != "missing_after_cut" else len(v) for k, v in r.items()}))
+    assert r["udp_packets_before_cut"] >= 200 and r["received_before_cut"] >= 200, r  # the stream rode UDP
+    missing = r["missing_after_cut"]
+    assert missing, "nothing was lost after the cut: the cut did not cut the estimates' path"
+    assert not [seq for seq in missing if seq % COPY_EVERY == 0], \
+        f"copies lost after the cut (seq after {r['cut_after_seq']}): {missing}"
