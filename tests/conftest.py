@@ -38,13 +38,6 @@ def pytest_sessionstart(session) -> None:
     FormationController.warm_up(plan_from_dict(tomllib.loads(PAPER_PLAN_FILE.read_text())).design, 200.0)
 
 
-def pytest_collection_modifyitems(items) -> None:
-    """Whole scenarios (``slow``) first, the rest in file order after them: ``make test`` hands the
-    tests out one or two at a time to whichever worker is free (tests/run_suite.py), so a scenario
-    of a minute never starts last, with the other workers idle behind it."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
-
 def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]], source: Path = PAPER_PLAN_FILE) -> Path:
     """examples/paper-hexagon.toml (or ``source``) with each (old, new) text replaced (each old must
     be there), written as tmp_path/plan.toml."""
