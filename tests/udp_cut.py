@@ -6,13 +6,14 @@ Zenoh session, agent 2's peer, records the sequence number of every estimate it 
 
 Everything is counted, nothing timed: ``before`` estimates are published with UDP up (the stream
 must be flowing on it), then UDP is dropped and ``after`` more are published; the listener is then
-given up to 10 s to take what is coming.
+given up to 10 s to take the last reliable copy.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -25,7 +26,7 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from triswarm.companion.bus import Bus, close_session, default_config  # noqa: E402
+from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_config  # noqa: E402
 from triswarm.protocol.codec import AgentStatus, decode_header, estimate_key  # noqa: E402
 
 PLAN, RATE_HZ, BEFORE, AFTER = 0x5EED, 200.0, 200, 400
@@ -38,7 +39,7 @@ def udp_packets() -> int:
     return int(out.splitlines()[2].split()[0])
 
 
-async def main(out: Path, base: int) -> None:
+async def main(out: Path, base: int) -> tuple:
     swarm = f"cut-{uuid.uuid4().hex[:8]}"
     subprocess.run(["iptables", "-w", "-A", "OUTPUT", "-p", "udp"], check=True)  # counts every UDP packet
     got: list[int] = []
@@ -74,10 +75,11 @@ async def main(out: Path, base: int) -> None:
             bus.publish_estimate(1, xi, 0.0, AgentStatus.FLYING)
             await asyncio.sleep(1.0 / RATE_HZ)
         last_seq = bus.members[1].seq
+        last_copy = last_seq - last_seq % COPY_EVERY  # (TCP keeps their order: once it is in, all of them are)
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
             with lock:
-                if last_seq in got:
+                if got and max(got) >= last_copy:
                     break
             await asyncio.sleep(0.05)
         with lock:
@@ -88,11 +90,16 @@ async def main(out: Path, base: int) -> None:
             "received_before_cut": sum(1 for s in received if s <= cut_after_seq), "received_after_cut": len(after),
             "missing_after_cut": [s for s in range(cut_after_seq + 1, last_seq + 1) if s not in set(after)],
         }))
-    finally:
-        bus.close()
+    except BaseException:
         sub.undeclare()
         close_session(listener)
+        bus.close()
+        raise
+    # Measured, done: the sessions are left open to the process's end (closing them, or dropping
+    # them, takes about 9 s after the cut, UDP restored or not: the test's time, not what it judges)
+    return bus, listener, sub
 
 
 if __name__ == "__main__":
-    asyncio.run(main(Path(sys.argv[1]), int(sys.argv[2])))
+    kept = asyncio.run(main(Path(sys.argv[1]), int(sys.argv[2])))
+    os._exit(0)
