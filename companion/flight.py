@@ -273,12 +273,16 @@ class Flight:
 
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
-        with an estimate younger than NB_TIMEOUT_S."""
+        with an estimate younger than NB_TIMEOUT_S. A neighbour whose fresh estimates come counts
+        without its liveliness token: under loss, Zenoh has been seen to lose a token's declaration
+        for a whole flight while the estimates flowed (the estimates are the better sign of life:
+        they stop within NB_TIMEOUT_S when it dies)."""
         a = self.a
         if j == a.id:
             return True
         bus = a.bus
-        if j not in bus.alive:
+        alive = j in bus.alive
+        if not alive and (j not in a.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
         starting = a.autopilot.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
         plans = a.plans_on_bus
@@ -295,7 +299,7 @@ class Flight:
                 return False
             del self.silent[j]
         if not nb.heard or nb.plan_id not in plans:
-            return starting
+            return starting and alive
         if nb.status != AgentStatus.FLYING:
             return False
         # stale in plan time (the flight controllers' clock): a pause of the whole swarm is not a loss
@@ -303,14 +307,15 @@ class Flight:
 
     def why_absent(self, j: int) -> str:
         bus = self.a.bus
-        if j not in bus.alive:
+        if j not in bus.alive and j not in self.a.listen_to:
             return "no liveliness"
+        lost = "" if j in bus.alive else "no liveliness, "
         status = bus.status_of(j, self.a.plans_on_bus)
         nb = bus.estimates.get(j)
         if nb is not None and nb.heard:
-            return (f"status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms old, "
-                    f"t_plan {nb.t_plan_s:.3f} (received {1e3 * (time.time() - nb.received_at):.0f} ms ago)")
-        return f"status {status.name if status else '?'}, no estimate"
+            return (f"{lost}status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms "
+                    f"old, t_plan {nb.t_plan_s:.3f} (received {1e3 * (time.time() - nb.received_at):.0f} ms ago)")
+        return f"{lost}status {status.name if status else '?'}, no estimate"
 
 
 def braking(t: float, x: np.ndarray) -> QuinticTransfer:

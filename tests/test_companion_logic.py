@@ -169,3 +169,35 @@ def test_mission_state_survives_a_restart_and_a_bad_file(tmp_path, paper_spec):
     fresh = StateStore(tmp_path / "state")
     assert fresh.load() is None and "unusable saved mission" in fresh.problem
     assert StateStore(None).load() is None  # no folder: nothing kept, nothing to fail
+
+
+def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness():
+    """Whom an agent counts present (Flight.usable): an in-neighbour with a fresh estimate of this
+    plan counts even when its liveliness token never arrived (Zenoh lost the declaration); one with
+    no liveliness and a stale estimate, or no estimate, does not; an agent we do not listen to still
+    needs its liveliness."""
+    from types import SimpleNamespace
+
+    from triswarm.companion.bus import Neighbour
+    from triswarm.companion.flight import Flight
+    from triswarm.protocol.codec import AgentStatus
+
+    plan, timeout_s = 7, 0.2
+    estimates = {j: Neighbour() for j in (2, 3, 4)}
+    bus = SimpleNamespace(alive={1, 4}, estimates=estimates, status_of=lambda j, plans: None)
+    agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
+                            autopilot=SimpleNamespace(now_unix=lambda: 1000.0),
+                            params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
+    flight = Flight(agent)
+    flight.t_p = 50.0
+    for j, t_plan in ((2, 50.0 - 0.01), (3, 50.0 - 1.0)):
+        nb = estimates[j]
+        nb.seq, nb.t_plan_s, nb.status, nb.plan_id, nb.xi = 1, t_plan, AgentStatus.FLYING, plan, np.zeros(12)
+    assert flight.usable(2)  # no liveliness, estimate 10 ms old: counts
+    assert not flight.usable(2, check_fresh=False)  # but lockstep waits only for the living
+    assert not flight.usable(3) and flight.why_absent(3).startswith("no liveliness, status ?, estimate")  # stale
+    assert flight.usable(4)  # not listened to, alive
+    bus.alive.discard(4)
+    assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
+    estimates[2].plan_id = plan + 1  # another plan's estimates are no sign of this plan's neighbour
+    assert not flight.usable(2)
