@@ -134,6 +134,7 @@ class Host:
         try:
             results = await asyncio.gather(*tasks, return_exceptions=True)
         finally:
+            self.loop_ctl.close()
             for bus in self._buses.values():
                 bus.close()
             if self._session is not None:

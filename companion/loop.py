@@ -74,6 +74,15 @@ class ControlLoop:
             self._buses.add(bus)
             bus.on_estimates = self._estimates_came
 
+    def close(self) -> None:
+        """The flight is over and the buses close next: nothing waits, no timer fires on them."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer, self._timer_at = None, float("inf")
+        self.waiting.clear()
+        self._due.clear()
+        self._buses.clear()
+
     def forget(self, agent) -> None:
         """``agent`` stops: nothing of it is due or waits any more."""
         self._due.pop(agent, None)

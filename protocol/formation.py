@@ -339,22 +339,25 @@ class Blend(_Transition):
 
 @dataclass(frozen=True)
 class Rejoin(_Transition):
-    """Back into ``target`` from wherever ``source`` is at t0: the difference source - target at t0
-    and its rate decay to zero by a quintic over [t0_s, t0_s + duration_s]:
+    """Back into ``target`` from wherever ``source`` is at t0: the difference source - target at t0,
+    its rate and its second derivative decay to zero by a quintic over [t0_s, t0_s + duration_s]:
 
-        x(t) = x_target(t) + e(t - t0),   e(0), e'(0) from the source, e''(0) = 0,   e = e' = e'' = 0 at the end,
+        x(t) = x_target(t) + e(t - t0),   e(0), e'(0), e''(0) from the source,   e = e' = e'' = 0 at the end,
 
-    for positions and attitudes alike. The reference continues the source in position and velocity
-    (the acceleration steps, as it does when a hold begins) and is exactly the target afterwards.
-    Unlike a ``Blend`` the source is not followed after t0: a drone that was braking to a hold does
-    not go on braking while it rejoins. ``rejoin_duration`` picks a duration for a peak acceleration."""
+    for positions and attitudes alike. The reference continues the source in position, velocity and
+    acceleration, and is exactly the target afterwards. (With an acceleration step at t0, a drone
+    taken over at rest in a formation that turns at 10 m/s^2 was asked for that at once: a restarted
+    companion's first commands tilted the rotors to their limits and tumbled the vehicle.) Unlike a
+    ``Blend`` the source is not followed after t0: a drone that was braking to a hold does not go on
+    braking while it rejoins. ``rejoin_duration`` picks a duration for a peak acceleration."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         a, b = self.source.kinematics(self.t0_s), self.target.kinematics(self.t0_s)
         T = self.duration_s
-        coeffs = [_quintic_to_rest(xa - xb, va - vb, np.zeros_like(xa), T)
-                  for xa, va, xb, vb in ((a.p, a.p_dot, b.p, b.p_dot), (a.eta, a.eta_dot, b.eta, b.eta_dot))]
+        coeffs = [_quintic_to_rest(xa - xb, va - vb, aa - ab, T)
+                  for xa, va, aa, xb, vb, ab in ((a.p, a.p_dot, a.p_ddot, b.p, b.p_dot, b.p_ddot),
+                                                 (a.eta, a.eta_dot, a.eta_ddot, b.eta, b.eta_dot, b.eta_ddot))]
         object.__setattr__(self, "_coeffs", coeffs)
 
     @property

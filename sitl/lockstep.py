@@ -11,7 +11,8 @@ Members are the vehicles whose companions answer. The clock starts when every ve
 process has answered once (it stands still until then, offering the current state again and
 again, and says whom it waits for). Only a wall-clock watchdog takes a member out: a companion
 silent for ``timeout_s`` has died or hung; the vehicle then flies on without it and its own
-failsafe counts on simulated time. A member that answers again is back in. An answer overdue by
+failsafe counts on simulated time. A member that answers again is back in at once, and the clock
+waits for its answer to the newest state it was sent. An answer overdue by
 ``reoffer_s`` gets its state sent again (a datagram lost on a loaded machine costs a re-send,
 not the run). This module keeps the books; ``server.py`` moves the datagrams.
 """
@@ -81,18 +82,26 @@ class Lockstep:
         if i in self.members and i not in self.awaiting:
             self.awaiting[i] = [t_us, now_wall, now_wall]
 
-    def answered(self, i: int, t_us: int, now_wall: float) -> str | None:
-        """Vehicle i's companion answered telemetry time t_us (at wall time ``now_wall``). Returns
-        what changed ("started", "back": vehicle i is a member again), or None."""
+    def answered(self, i: int, t_us: int, now_wall: float, command: bool = True) -> str | None:
+        """Vehicle i's companion answered telemetry time t_us (at wall time ``now_wall``; ``command``:
+        with an actuator command, not only a datagram of another kind). Returns what changed
+        ("started", "back": vehicle i is a member again), or None."""
         said = None
         self.answered_us[i] = max(t_us, self.answered_us.get(i, -1))
-        if i not in self.members and t_us >= self.last_sent_us.get(i, 0):
+        if i not in self.members and self.started and command:
+            # back at its first answer, whatever state it answers: the clock then waits for its answer
+            # to the newest state sent (one that answered late would otherwise fly on out of step,
+            # its vehicle holding each command for as long as the companion took to catch up)
             self.members.add(i)
-            if not self.started and len(self.members) == self.n:
+            said = "back"
+            newest_us = self.last_sent_us.get(i, -1)
+            if t_us < newest_us:
+                self.awaiting[i] = [newest_us, now_wall, now_wall]
+        elif i not in self.members and not self.started and t_us >= self.last_sent_us.get(i, 0):
+            self.members.add(i)
+            if len(self.members) == self.n:
                 self.started = True
                 said = "started"
-            elif self.started:
-                said = "back"
         waiting = self.awaiting.get(i)
         if waiting is not None and t_us >= waiting[0]:
             del self.awaiting[i]

@@ -223,7 +223,8 @@ class SitlServer:
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
         if self.lockstep is not None and link.name == "companion":
-            said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall)
+            said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall,
+                                          command=any(m.get_msgId() == ACTUATOR_MSG_ID for m in msgs))
             if said == "started":
                 self.say("lockstep: every vehicle's companion answers; the clock runs")
                 self._join_mono, self._join_sim_s = time.monotonic(), self.swarm.time_s

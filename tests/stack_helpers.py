@@ -6,6 +6,7 @@ Recorder does, so that a test on simulated time (lockstep) reads its timeline in
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections import defaultdict
@@ -172,6 +173,20 @@ def status_changes(statuses, agent: int) -> list[tuple[float, str, str]]:
         if a == agent and (not out or out[-1][1] != status or out[-1][0] != since):
             out.append((since, status, reason))
     return out
+
+
+def log_events(text: str, what: str) -> list[float]:
+    """Plan times of a companion's "hold at t_plan X" / "rejoin at t_plan X" log lines."""
+    out = []
+    for line in text.splitlines():
+        if f"{what} at t_plan " in line:
+            out.append(float(line.split(f"{what} at t_plan ")[1].split(":")[0]))
+    return out
+
+
+def rejoin_ends(text: str) -> list[float]:
+    """Plan times at which a companion's rejoins end ("rejoin at t_plan X: ... over D s")."""
+    return [float(t) + float(d) for t, d in re.findall(r"rejoin at t_plan ([-\d.]+):.* over ([\d.]+) s", text)]
 
 
 def wait_sim(clock, t_unix: float, stack=None, wall_timeout_s: float = 240.0, poll_s: float = 0.1,

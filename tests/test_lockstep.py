@@ -2,7 +2,7 @@
 companions: the clock stands until every vehicle's companion answers, then advances one control
 step per round of answers and never without them; an unanswered state is sent again; a companion
 that stays silent is taken out by the wall-clock watchdog, and its vehicle's failsafe then runs on
-simulated time."""
+simulated time; one that answers again is back in at once."""
 
 from __future__ import annotations
 
@@ -143,6 +143,20 @@ def test_a_silent_companion_leaves_lockstep_and_its_failsafe_runs_on_simulated_t
                 if ta % 1000 == 0:
                     b.hello()
             assert any("no actuator command for 10 s on ground" in t for t in texts), texts
+            # vehicle 2's companion speaks again, answering a state long gone (a companion restarted,
+            # or one that fell behind): it is back at once, and the clock waits for its answer to
+            # the newest state it was sent before it steps again
+            b.answer(t_silent)
+            a.answer(ta)  # (the state the loop above stopped at; the two answers come on two sockets, in
+            # either order: one step may go before vehicle 2's is read, not two)
+            newer = a.state(timeout_s=0.4)  # (well within the 1 s watchdog, which would take it out again)
+            if newer is not None:
+                a.answer(newer)
+                newer = a.state(timeout_s=0.4)
+            assert newer is None, f"the clock stepped to {newer} ms without vehicle 2's companion"
+            newest = max(m.time_boot_ms for m in b.drain() if m.get_type() == "LOCAL_POSITION_NED")
+            b.answer(newest)
+            assert a.state(timeout_s=2.0) is not None, "the clock did not run on after vehicle 2's answer"
         finally:
             a.close()
             b.close()

@@ -66,7 +66,7 @@ from .conftest import PAPER_PLAN_FILE
 from . import zenoh_router
 from .multihost import Hosts, subnet_in_use
 from .netem import need_netns
-from .stack_helpers import judge
+from .stack_helpers import judge, log_events
 from .test_monitor import table_rows, triswarm
 
 pytestmark = pytest.mark.slow
@@ -215,15 +215,6 @@ def changes(statuses, agent: int, start: float) -> list[tuple[float, str, str]]:
     for t, a, status, reason in statuses:  # (in the order they came)
         if a == agent and (not out or out[-1][1] != status):
             out.append((round(t - start, 3), status, reason))
-    return out
-
-
-def log_events(text: str, what: str) -> list[float]:
-    """Plan times of a companion's "hold at t_plan X" / "rejoin at t_plan X" log lines."""
-    out = []
-    for line in text.splitlines():
-        if f"{what} at t_plan " in line:
-            out.append(float(line.split(f"{what} at t_plan ")[1].split(":")[0]))
     return out
 
 
