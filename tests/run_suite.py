@@ -37,7 +37,7 @@ PYTEST = [sys.executable, "-m", "pytest"]
 
 
 def main(args: list[str]) -> int:
-    simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", *args]
+    simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", "--durations=15", *args]
     realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", *args]
     if os.geteuid() != 0:
         first = subprocess.call(simulated, cwd=ROOT)
