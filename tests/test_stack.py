@@ -24,7 +24,7 @@ from .stack_helpers import BusObserver, GroundStation, judge, rejoin_ends, statu
 
 pytestmark = pytest.mark.slow
 SWARM = "paper-hexagon"  # the plan's name: the companions' default swarm
-TAKEOVER_TILT_RAD = 1.2
+TAKEOVER_TILT_RAD = 1.2  # largest roll or pitch of a restarted companion's drone on its way back
 WATCHDOG_S = 3.0  # the SITL's lockstep watchdog here: a companion silent this long (wall time) is dead
 
 
@@ -177,8 +177,9 @@ def test_paper_case_study_whole_stack_then_a_companion_killed_and_restarted(tmp_
                 + " | ".join(line for i in (2, 3) for line in stack.log(f"companion-{i}").splitlines() if "rejoin" in line))
     assert "resuming plan after restart" in stack.log("companion-2")
     # the restarted companion took over from the failsafe smoothly: no tumble on the way back (the
-    # formation's own attitudes reach 0.5 rad; a takeover whose first commands the simulator held,
-    # out of lockstep, for a quarter of a second rolled the vehicle past 1.9 rad, and sometimes over)
+    # formation's own attitudes reach 0.5 rad; a takeover asked at once for the formation's 10 m/s^2
+    # turn rolled the vehicle past 1.9 rad, and sometimes over, the more so when the simulator held
+    # its first command out of lockstep)
     _, _, eta = rec.arrays(start, t_from=back - 0.5, t_to=settled)
     tilt = float(np.abs(eta[:, 1, :2]).max())
     print(f"MEASURED drone 2, largest roll or pitch from its takeover to the end of its rejoin: {tilt:.2f} rad")
