@@ -344,12 +344,10 @@ class Rejoin(_Transition):
 
         x(t) = x_target(t) + e(t - t0),   e(0), e'(0), e''(0) from the source,   e = e' = e'' = 0 at the end,
 
-    for positions and attitudes alike. The reference continues the source in position, velocity and
-    acceleration, and is exactly the target afterwards. (With an acceleration step at t0, a drone
-    taken over at rest in a formation that turns at 10 m/s^2 was asked for that at once: a restarted
-    companion's first commands tilted the rotors to their limits and tumbled the vehicle.) Unlike a
-    ``Blend`` the source is not followed after t0: a drone that was braking to a hold does not go on
-    braking while it rejoins. ``rejoin_duration`` picks a duration for a peak acceleration."""
+    for positions and attitudes alike: the reference continues the source (no step, not even in
+    acceleration: a drone taken over at rest is not asked at once for the formation's turn) and is
+    exactly the target afterwards. Unlike a ``Blend`` the source is not followed after t0.
+    ``rejoin_duration`` picks a duration for a peak acceleration."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -212,7 +212,8 @@ class SitlServer:
             fc.counters["drop_unparseable_datagram"] += 1
             return
         # (an actuator command needs no sensor snapshot: most datagrams in lockstep are those)
-        snap = None if all(m.get_msgId() == ACTUATOR_MSG_ID for m in msgs) else self.swarm.snapshot(link.vehicle)
+        n_actuator = sum(m.get_msgId() == ACTUATOR_MSG_ID for m in msgs)
+        snap = None if n_actuator == len(msgs) else self.swarm.snapshot(link.vehicle)
         replies = []
         for msg in msgs:
             try:
@@ -223,8 +224,7 @@ class SitlServer:
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
         if self.lockstep is not None and link.name == "companion":
-            said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall,
-                                          command=any(m.get_msgId() == ACTUATOR_MSG_ID for m in msgs))
+            said = self.lockstep.answered(link.vehicle, fc.answered_us, now_wall, command=n_actuator > 0)
             if said == "started":
                 self.say("lockstep: every vehicle's companion answers; the clock runs")
                 self._join_mono, self._join_sim_s = time.monotonic(), self.swarm.time_s
