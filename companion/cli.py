@@ -143,7 +143,10 @@ def write_stats(path: Path, stats: dict) -> None:
 def main() -> None:
     import zenoh
 
+    from .design_cache import keep_on_disk
+
     zenoh.init_log_from_env_or("error")  # (Zenoh's own log: RUST_LOG=zenoh=debug for more)
+    keep_on_disk()  # (the design's solved equations kept across runs)
     app()
 
 

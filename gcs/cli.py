@@ -355,6 +355,9 @@ app.command("deploy")(deploy)
 
 
 def main() -> None:
+    from triswarm.companion.design_cache import keep_on_disk
+
+    keep_on_disk()  # (the design's solved equations kept across runs: plan check, sim, sitl up, demo)
     try:
         app()
     except KeyboardInterrupt:

@@ -9,6 +9,8 @@ be Hurwitz (the paper's (77) "A_r + c F C_r" with its F = -ours).
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -211,16 +213,55 @@ def rates_output(C: np.ndarray) -> np.ndarray:
     return np.vstack([C, E])
 
 
-def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
-    """Algorithm 1's gains for a swarm flying ``schedule``. Refuses a topology without Assumption 1."""
-    # Imported here: python-control brings scipy.signal and matplotlib.pyplot (about 1 s), which a
-    # command that never designs (sitl up, monitor, --help) should not wait for.
+_kept: tuple[Callable[[str], bytes | None], Callable[[str, bytes], None]] | None = None
+
+
+def keep_solutions(load: Callable[[str], bytes | None], save: Callable[[str, bytes], None]) -> None:
+    """Keep the design's solved Riccati equations across runs, as ``jit.cache_on_disk`` keeps the
+    compiled code: ``save(key, blob)`` stores a solution, ``load(key)`` gives it back (None when it
+    has none). For the edges, which read and write the files. A design whose equations are all kept
+    does not import python-control (about 0.7 s: it brings scipy.signal and matplotlib) for its 10 ms
+    of work. A blob that is not whole (its digest) is solved again."""
+    global _kept
+    _kept = (load, save)
+
+
+def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``control.lqr(A, B, Q, R)`` (kind "lqr") or ``control.lqe(A, G, C, Q_n, R_n)`` ("lqe"): the
+    gain and the Riccati equation's solution, kept by ``keep_solutions`` under a digest of the
+    matrices. Kept or solved, they are the same bits."""
+    mats = [np.ascontiguousarray(m, dtype="<f8") for m in matrices]
+    digest = hashlib.sha256(kind.encode())
+    for m in mats:
+        digest.update(repr(m.shape).encode())
+        digest.update(m.tobytes())
+    key = f"{kind}-{digest.hexdigest()}"
+    n = mats[0].shape[0]
+    gain_shape = (mats[1].shape[1], n) if kind == "lqr" else (n, mats[2].shape[0])
+    blob = _kept[0](key) if _kept is not None else None
+    if blob is not None and len(blob) == 32 + 8 * (gain_shape[0] * gain_shape[1] + n * n) \
+            and hashlib.sha256(blob[32:]).digest() == blob[:32]:
+        values = np.frombuffer(blob, dtype="<f8", offset=32).astype(float)
+        split = gain_shape[0] * gain_shape[1]
+        return values[:split].reshape(gain_shape), values[split:].reshape(n, n)
+    # Imported here: python-control brings scipy.signal and matplotlib.pyplot (about 0.7 s), which a
+    # command that never designs (monitor, --help) or finds its equations kept should not wait for.
     import control
 
+    gain, P, _ = (control.lqr if kind == "lqr" else control.lqe)(*mats)
+    gain, P = np.asarray(gain, dtype=float), np.asarray(P, dtype=float)
+    if _kept is not None:
+        payload = np.ascontiguousarray(gain, dtype="<f8").tobytes() + np.ascontiguousarray(P, dtype="<f8").tobytes()
+        _kept[1](key, hashlib.sha256(payload).digest() + payload)
+    return gain, P
+
+
+def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
+    """Algorithm 1's gains for a swarm flying ``schedule``. Refuses a topology without Assumption 1."""
     schedule.check()
     A, B, C = rfl.A_r, rfl.B_r, rfl.C_r
-    K, P, _ = control.lqr(A, B, weights.Q, weights.R)           # (89)-(90)
-    F, P_bar, _ = control.lqe(A, np.eye(12), C, weights.Q_bar, weights.R_bar)  # (98)-(99)
+    K, P = _solved("lqr", A, B, weights.Q, weights.R)           # (89)-(90)
+    F, P_bar = _solved("lqe", A, np.eye(12), C, weights.Q_bar, weights.R_bar)  # (98)-(99)
     eigs = tuple(t.eigenvalues() for t in schedule.topologies)
     lambda_R = float(min(e.real.min() for e in eigs))
     c = weights.coupling_margin / (2.0 * lambda_R)               # (91) with a margin
@@ -231,14 +272,14 @@ def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
         Qa = np.zeros((18, 18))
         Qa[:12, :12] = weights.Q_bar
         Qa[12:, 12:] = np.diag(weights.Q_disturbance)
-        F_aug = np.asarray(control.lqe(Aa, np.eye(18), Ca, Qa, weights.R_bar)[0])
+        F_aug = _solved("lqe", Aa, np.eye(18), Ca, Qa, weights.R_bar)[0]
         A_o, C_o, Q_o = Aa, Ca, Qa
     else:
         A_o, C_o, Q_o = A, C, weights.Q_bar
     R_rates = np.zeros((9, 9))
     R_rates[:6, :6] = weights.R_bar
     R_rates[6:, 6:] = np.diag(weights.R_bar_rates)
-    F_rates = np.asarray(control.lqe(A_o, np.eye(A_o.shape[0]), rates_output(C_o), Q_o, R_rates)[0])
+    F_rates = _solved("lqe", A_o, np.eye(A_o.shape[0]), rates_output(C_o), Q_o, R_rates)[0]
     d = Design(rfl, weights, np.asarray(K), np.asarray(P), np.asarray(F), np.asarray(P_bar), c, lambda_R, eigs,
                B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug, F_rates)
     margins = d.stability_margins()
