@@ -33,8 +33,10 @@ def _versions() -> str:
 
 def folder() -> Path | None:
     """Where the solutions are kept: the first candidate that can be written, or None."""
-    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    for base in (Path(triswarm.protocol.__file__).parent / "__pycache__", Path(xdg) / "triswarm"):
+    user = Path(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"))
+    for base in (Path(triswarm.protocol.__file__).parent / "__pycache__", user / "triswarm"):
+        if not base.is_absolute():  # (no home folder: "~" left as it is)
+            continue
         path = base / _versions()
         try:
             path.mkdir(parents=True, exist_ok=True)

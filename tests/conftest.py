@@ -8,6 +8,7 @@ os.environ.setdefault("MAVLINK20", "1")
 import numpy as np
 import pytest
 
+from triswarm.companion.design_cache import keep_on_disk
 from triswarm.protocol import jit
 from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.plan import plan_from_dict
@@ -17,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
 
 jit.cache_on_disk()  # the tests are an edge: protocol/'s compiled code is kept in numba's cache, as the programs keep it
+keep_on_disk()  # and the design's solved Riccati equations, as the programs keep them
 
 
 def pytest_sessionstart(session) -> None:
