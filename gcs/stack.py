@@ -166,10 +166,13 @@ class Stack:
         proc.send_signal(sig)
         proc.wait(timeout=10)
 
-    def restart_sitl(self) -> dict:
+    def restart_sitl(self, sitl_args: list[str] | None = None) -> dict:
         """Start the SITL again (on the same ports if ``sitl_base_port`` is set): flight controllers
-        that rebooted, on the ground, with a new clock. Returns its manifest."""
+        that rebooted, on the ground, with a new clock; with ``sitl_args`` instead of the first
+        ones if given. Returns its manifest."""
         assert self.procs["sitl"].poll() is not None, "the SITL still runs"
+        if sitl_args is not None:
+            self.sitl_args = list(sitl_args)
         self.manifest = self._start_sitl()
         return self.manifest
 
