@@ -14,12 +14,16 @@ Host C is cut off the swarm's network once the formation has settled, then resto
 its namespace drops every packet in and out but loopback (its companions to its router) and its
 companions' flight-controller links (on a drone, a serial line that no network fault cuts). The
 routers, the companions' Zenoh sessions and the ground station's MAVLink links to 5 and 6 all lose
-host C; the drones 5 and 6 stay in their companions' hands.
+host C; the drones 5 and 6 stay in their companions' hands. While C is cut off, its router is
+killed (SIGKILL: a crash) and started again ROUTER_DEAD_S of wall time later: 5 and 6 lose their
+sessions and each other, and must find the new router; at the restore, routers A and B must mesh
+with it. Only through it do the ground station's clients of A and B see 5 and 6 alive again, and
+the swarm become whole.
 
 Timeline, plan time on the flight controllers' clock (the plan switches topology every 5 s):
 
     16-19 s   all six, judged (the entry ends at 15 s)              (two-chain)
-    19 s      host C cut off
+    19 s      host C cut off; then its router killed, and started again ROUTER_DEAD_S (wall) later
     19-25 s   agents 1-4 keep a path from the leader (two-chain, triangles): judged;
               agents 5, 6 have none: they hold
     25-30 s   reverse-two-chain: the leader pins only 5 and 6, so 1-4 hold and say so on Zenoh;
@@ -92,6 +96,8 @@ START_DELAY_S = 3.0
 """Simulated seconds from the flight controllers' boot to the plan's start. The clock stands until
 every companion has answered (however long they take to import and design the plan), so nobody
 can be late; the companions arm 2 s before the start."""
+ROUTER_DEAD_S = 2.0
+"""Wall time router C stays dead: past Zenoh's 1 s lease, its clients lose their sessions."""
 MIN_CUT_WALL_S = 4.0
 """The restore waits, beside plan time RESTORE_AT, for this much wall time after the cut: the
 monitor calls a drone lost after 2 s of silence and prints a table a second, so it shows the cut
@@ -246,6 +252,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
         (tmp_path / sub).mkdir()
     monitor = rec = watch = watch_b = None
     measured: dict = {}
+    router_of = {h: f"router-{h}" for h in HOSTS}  # (their process names: router C's changes when it restarts)
 
     def spawn(prefix_cmd: list[str], name: str, cmd: list[str]) -> None:
         log = (tmp_path / "logs" / f"{name}.log").open("w")
@@ -317,6 +324,20 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             t_cut_begin = plan_time()
             net.cut("c", keep=[(net.bridge_address, vehicle[i]["links"]["companion"]["port"]) for i in HOSTS["c"]])
             t_cut, t_cut_wall = plan_time(), time.monotonic()  # (the clock stands at once: 5 and 6 wait for 3 and 4)
+            # once routers A and B have lost 5 and 6 (judged below), host C's router crashes, and is
+            # started again
+            wait(lambda: all(any(a == i and not alive and t >= start + t_cut_begin for t, a, alive in w.liveliness)
+                             for w in (watch, watch_b) for i in HOSTS["c"]), "A and B lose 5 and 6", 60.0)
+            dead = procs.pop(router_of["c"])
+            dead.kill()
+            dead.wait(timeout=10)
+            t_router_dead_wall = time.monotonic()
+            time.sleep(ROUTER_DEAD_S)
+            router_of["c"] = "router-c-again"
+            spawn(net.exec_prefix("c"), router_of["c"], zenoh_router.command(generated / f"{routers['c'].name}.json5"))
+            wait(lambda: " up" in (tmp_path / "logs" / f"{router_of['c']}.log").read_text(), "router C up again", 60.0)
+            measured["router_c_dead_wall_s"] = round(time.monotonic() - t_router_dead_wall, 2)
+            measured["router_c_up_again_s"] = round(plan_time(), 2)
             wait_plan(RESTORE_AT)
             wait(lambda: time.monotonic() >= t_cut_wall + MIN_CUT_WALL_S, "the cut's least wall time")
             t_restore, t_restore_wall = plan_time(), time.monotonic()
@@ -349,7 +370,7 @@ def test_three_hosts_link_cut_and_rejoin(tmp_path):
             # companions first, then the SITL, then the routers one by one in the order they connect
             # (A to B and C, B to C): a router still trying to reach one that is gone takes 10 s to close
             stop_in_turn([[p for n, p in procs.items() if n.startswith("companion")], [procs["sitl"]] if "sitl" in procs else [],
-                          *[[procs[f"router-{h}"]] for h in HOSTS if f"router-{h}" in procs]])
+                          *[[procs[router_of[h]]] for h in HOSTS if router_of[h] in procs]])
             for log in logs:
                 log.close()
     assert not net.leftovers(), net.leftovers()
