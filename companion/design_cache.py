@@ -7,18 +7,21 @@ failsafe that much longer.
 One file per equation, named by a digest of its matrices, in a folder named by the versions of
 python-control and SciPy that solved it: beside protocol/'s compiled code (``protocol/__pycache__``)
 where that can be written, else in ``$XDG_CACHE_HOME/triswarm`` (``~/.cache/triswarm``). Files are
-written whole (a temporary file, then a rename): processes that start together may each solve and
+written whole (``state.write_atomically``: a temporary file, fsync, a rename): processes that start together may each solve and
 write, and a reader sees a whole file or none. A folder that cannot be written keeps nothing, and
 the design is solved each time; nothing else changes."""
 
 from __future__ import annotations
 
+import functools
 import os
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import triswarm.protocol
 from triswarm.protocol import design
+
+from .state import write_atomically
 
 
 def _versions() -> str:
@@ -47,28 +50,22 @@ def folder() -> Path | None:
     return None
 
 
-def keep_on_disk(path: Path | None = None) -> Path | None:
-    """Keep the design's solutions in ``path`` (default: ``folder()``); the folder used, or None."""
-    path = path if path is not None else folder()
-    if path is None:
-        return None
+def keep_on_disk(path: Path | None = None) -> None:
+    """Keep the design's solutions in ``path`` (default: ``folder()``, looked for at the first
+    design: a command that designs nothing makes no folder)."""
+    where = functools.cache(lambda: path if path is not None else folder())
 
     def load(key: str) -> bytes | None:
         try:
-            return (path / key).read_bytes()
+            return None if where() is None else (where() / key).read_bytes()
         except OSError:
             return None
 
     def save(key: str, blob: bytes) -> None:
-        tmp = path / f".{key}.{os.getpid()}.tmp"
         try:
-            tmp.write_bytes(blob)
-            os.replace(tmp, path / key)
+            if where() is not None:
+                write_atomically(where() / key, blob)
         except OSError:
-            try:
-                tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+            pass  # (kept nowhere: solved again next time)
 
     design.keep_solutions(load, save)
-    return path

@@ -28,19 +28,26 @@ def read_signing_key(path: Path) -> bytes:
 
 
 def write_json_atomically(path: Path, data: dict) -> None:
+    """``data`` as indented JSON, by ``write_atomically``."""
+    write_atomically(path, (json.dumps(data, indent=2) + "\n").encode("utf-8"))
+
+
+def write_atomically(path: Path, data: bytes) -> None:
     """Write, fsync, rename (and fsync the folder): a reader sees the old file or the new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with tmp.open("w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=2)
-            fh.write("\n")
+        with tmp.open("wb") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)  # (a full folder keeps no half-written file)
+        try:
+            tmp.unlink(missing_ok=True)  # (a full folder keeps no half-written file)
+        except OSError:
+            pass  # (the folder is not one: nothing was written)
         raise
     fd = os.open(path.parent, os.O_RDONLY)
     try:

@@ -248,10 +248,9 @@ def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # command that never designs (monitor, --help) or finds its equations kept should not wait for.
     import control
 
-    gain, P, _ = (control.lqr if kind == "lqr" else control.lqe)(*mats)
-    gain, P = np.asarray(gain, dtype=float), np.asarray(P, dtype=float)
+    gain, P = (np.asarray(x, dtype=float) for x in (control.lqr if kind == "lqr" else control.lqe)(*mats)[:2])
     if _kept is not None:
-        payload = np.ascontiguousarray(gain, dtype="<f8").tobytes() + np.ascontiguousarray(P, dtype="<f8").tobytes()
+        payload = gain.astype("<f8").tobytes() + P.astype("<f8").tobytes()
         _kept[1](key, hashlib.sha256(payload).digest() + payload)
     return gain, P
 
