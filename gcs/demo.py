@@ -23,7 +23,6 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn
 
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
-from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
 from .errors import UserError, console, err_console, user_errors
@@ -94,6 +93,8 @@ def demo(
         if max_rtf is not None and not (lockstep and math.isfinite(max_rtf) and max_rtf > 0):
             raise UserError(f"--max-rtf must be a positive number and goes with --lockstep, got {max_rtf}"
                             + ("" if lockstep else " without --lockstep"))
+        from triswarm.protocol.plan import plan_from_dict
+
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)

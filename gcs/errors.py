@@ -15,10 +15,7 @@ import math
 import typer
 from rich.console import Console
 
-from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.design import FormationError
-from triswarm.protocol.graph import GraphError
-from triswarm.protocol.plan import PlanError
+from triswarm.protocol.errors import FormationError, GraphError, ParameterError, PlanError
 
 console = Console()
 err_console = Console(stderr=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import numpy as np
 import typer
@@ -14,14 +14,18 @@ from rich.panel import Panel
 from rich.table import Table
 
 from triswarm.protocol.airframe import RPM_TO_RAD_S
-from triswarm.protocol.design import Design
-from triswarm.protocol.plan import ActuatorDemand, Plan, PlanError
-from triswarm.protocol.separation import Approach
+from triswarm.protocol.errors import PlanError
 
-from . import plan_flight
 from .errors import UserError, console, user_errors
 from .report import design_summary
 from .scenarios import PlanArgument, load_plan
+
+if TYPE_CHECKING:
+    from triswarm.protocol.design import Design
+    from triswarm.protocol.plan import ActuatorDemand, Plan
+    from triswarm.protocol.separation import Approach
+
+    from . import plan_flight
 
 CHECK_STEP_S = 0.1  # plan time between the instants checked [s]
 
@@ -75,6 +79,8 @@ def check(
             if horizon <= plan.settled_from_s:
                 raise UserError(f"--horizon-s {horizon:g} ends before the settled window the flight is judged over "
                                 f"begins ({plan.settled_from_s:g} s)")
+            from . import plan_flight
+
             flight = plan_flight.fly(plan, horizon)
             if flight.problem is not None:
                 raise PlanError(f"{plan.source}: {flight.problem}")

@@ -12,12 +12,12 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from triswarm.protocol import metrics
-
 from .errors import UserError, console, short_number, user_errors
 from .scenarios import load_plan
 
 if TYPE_CHECKING:
+    from triswarm.protocol import metrics
+
     from .runlog import RunLog
 
 RUN_FILES = ("gcs.tlog", "plan.toml", "run.json")
@@ -34,6 +34,8 @@ def plot(
 ) -> None:
     """Write RUN/telemetry.csv, RUN/summary.json and the figures from RUN/gcs.tlog; exit 1 if the
     formation missed the bounds."""
+    from triswarm.protocol import metrics
+
     from . import plots, report
     from .runlog import RunLogError, read_run_log
 

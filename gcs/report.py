@@ -8,11 +8,14 @@ import math
 from dataclasses import asdict
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from triswarm.protocol.design import Design
-from triswarm.protocol.metrics import Performance
-from triswarm.protocol.plan import Plan, plan_from_dict
+if TYPE_CHECKING:
+    from triswarm.protocol.design import Design
+    from triswarm.protocol.metrics import Performance
+    from triswarm.protocol.plan import Plan
 
 TELEMETRY_COLUMNS = ["t_s", "drone", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad"]
 
@@ -112,4 +115,6 @@ def read_telemetry(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def read_run(run_dir: Path) -> tuple[dict, Plan]:
     summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    from triswarm.protocol.plan import plan_from_dict
+
     return summary, plan_from_dict(summary["plan"], str(run_dir / "summary.json"))

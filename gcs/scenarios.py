@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from triswarm.protocol.plan import Plan, PlanError, plan_from_dict, spec_from_toml
+from triswarm.protocol.errors import PlanError
+
+if TYPE_CHECKING:
+    from triswarm.protocol.plan import Plan
 
 DEFAULT_PLAN = "paper-hexagon"
 
@@ -42,10 +45,14 @@ def plan_text(name_or_path: str) -> str:
 
 def read_plan_spec(name_or_path: str) -> tuple[dict, str]:
     """The plan dict and a label for messages. Raises PlanError for a missing or malformed file."""
+    from triswarm.protocol.plan import spec_from_toml
+
     return spec_from_toml(plan_text(name_or_path), name_or_path), name_or_path
 
 
 def load_plan(name_or_path: str, drones: int | None = None) -> Plan:
+    from triswarm.protocol.plan import plan_from_dict
+
     spec, label = read_plan_spec(name_or_path)
     plan = plan_from_dict(spec, label)
     if drones is not None and drones != plan.n_agents:

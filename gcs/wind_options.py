@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.wind import Gust, Wind, turbulence_sigma_w
+from triswarm.protocol.errors import ParameterError
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    from triswarm.protocol.wind import Gust, Wind
 
 WindSpeed = Annotated[Optional[float], typer.Option(
     "--wind-m-s", help="Steady wind speed [m/s], the same everywhere. 0 is still air: the drones feel the drag of "
@@ -35,6 +37,8 @@ def wind_from_options(base: Wind | None, speed_m_s: float | None, from_deg: floa
                       gusts: list[str] | None) -> Wind | None:
     """``base`` (a plan's wind, or None) with what the flags change; None when no flag is given and
     there is no base."""
+    from triswarm.protocol.wind import Wind, turbulence_sigma_w
+
     if speed_m_s is None and from_deg is None and turbulence is None and not gusts:
         return base
     changes = {}
@@ -55,6 +59,8 @@ def wind_from_options(base: Wind | None, speed_m_s: float | None, from_deg: floa
 
 
 def _gust(text: str) -> Gust:
+    from triswarm.protocol.wind import Gust
+
     try:
         values = [float(part) for part in text.split(",")]
     except ValueError:

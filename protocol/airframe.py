@@ -10,11 +10,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from .errors import ParameterError
+
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
-
-
-class ParameterError(ValueError):
-    """A physical or design parameter a user supplied is not usable (one sentence)."""
 
 
 def finite_number(what: str, value, *, positive: bool = False, non_negative: bool = False) -> float:

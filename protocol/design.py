@@ -18,6 +18,7 @@ import numpy as np
 
 from . import kernels
 from .airframe import ParameterError
+from .errors import FormationError
 from .graph import Schedule
 from .rfl import RFL
 
@@ -27,10 +28,6 @@ ROW_GROUPS = (
     (slice(6, 9), "attitude rows 7-9"),
     (slice(9, 12), "position rows 10-12"),
 )
-
-
-class FormationError(ValueError):
-    """A formation that fails the feasibility condition (76) (one sentence)."""
 
 
 @dataclass(frozen=True)

@@ -13,9 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-
-class GraphError(ValueError):
-    """A topology that the protocol cannot use (one sentence)."""
+from .errors import GraphError
 
 
 def _agents(indices) -> str:

@@ -35,6 +35,7 @@ from . import graph as graph_mod
 from .airframe import RPM_TO_RAD_S, Airframe, ParameterError, finite_number
 from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
+from .errors import PlanError
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
                         RotatingPolygon, paper_attitudes)
 from .graph import GraphError, Schedule, Topology
@@ -43,10 +44,6 @@ from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
 from .separation import Approach, closest_approach
 from .sizing import SizingError, resized_spec
 from .wind import Wind, wind_from_table
-
-
-class PlanError(ValueError):
-    """A plan that cannot be flown, with the reason in one sentence."""
 
 
 MAX_DRONES = 1000

@@ -14,6 +14,8 @@ from triswarm.protocol.airframe import TABLE_1
 from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.rfl import RFL
 
+from .warm_up import PARTS, warm_up
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_PLAN_FILE = ROOT / "examples" / "paper-hexagon.toml"
 
@@ -22,22 +24,12 @@ keep_on_disk()  # and the design's solved Riccati equations, as the programs kee
 
 
 def pytest_sessionstart(session) -> None:
-    """Compile the numba kernels once, here, before any test (or xdist worker) starts: on a fresh
-    clone every process that needs them would otherwise compile them at the same time, and a
-    whole-stack test's first seconds would go to the compiler."""
+    """Compile the numba kernels once, here, before any test (or xdist worker) starts (tests/warm_up.py;
+    under ``make test`` they are compiled already, and this loads them from numba's cache)."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: the controller has done it
         return
-    from triswarm.protocol.controller import FormationController
-    from triswarm.sitl.physics import Plant
-
-    from triswarm.protocol.wind import Wind
-
-    for wind in (None, Wind(turbulence_sigma_w_m_s=1.0)):  # the plant in no air and in wind: two compilations
-        plant = Plant(TABLE_1, 1, wind=wind)
-        plant.reset(np.zeros((1, 3)))
-        plant.advance(1)
-        plant.observe()
-    FormationController.warm_up(plan_from_dict(tomllib.loads(PAPER_PLAN_FILE.read_text())).design, 200.0)
+    for part in PARTS:
+        warm_up(part)
 
 
 def paper_plan_variant(tmp_path: Path, replace: list[tuple[str, str]], source: Path = PAPER_PLAN_FILE) -> Path:

@@ -32,11 +32,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.priority import command  # noqa: E402
+from tests.warm_up import PARTS  # noqa: E402
 
 PYTEST = [sys.executable, "-m", "pytest"]
 
 
+def warm_up() -> None:
+    """Compile the numba kernels before both runs, one part per process, all at once (tests/warm_up.py):
+    each run's start then loads them from numba's cache. (Else, on a fresh clone, both runs compiled
+    all of them at the same time, 10 s of both cores.) A failure shows its traceback here, and again
+    where the runs start."""
+    parts = {part: subprocess.Popen([sys.executable, "-m", "tests.warm_up", part], cwd=ROOT) for part in PARTS}
+    for part, p in parts.items():
+        if p.wait() != 0:
+            print(f"run_suite: compiling the kernels of the {part} failed (exit status {p.returncode})", flush=True)
+
+
 def main(args: list[str]) -> int:
+    warm_up()
     simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", "--durations=15", *args]
     realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", *args]
     if os.geteuid() != 0:
