@@ -353,7 +353,9 @@ def _link(layout: Layout, name: str, listen: bool, protocols: list[str]) -> dict
         "verify_name_on_connect": True,
         "close_link_on_expiration": True,
     }
-    return {"protocols": protocols, "tx": {"lease": 1000, "keep_alive": 4}, "tls": tls}
+    from triswarm.companion.bus import KEEP_ALIVES_PER_LEASE, LEASE_MS
+
+    return {"protocols": protocols, "tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVES_PER_LEASE}, "tls": tls}
 
 
 RETRY = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}

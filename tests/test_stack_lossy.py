@@ -4,10 +4,11 @@ What is impaired. Inside a network namespace this test creates, all Zenoh traffi
 companions (one per process, each a Zenoh peer of the others) goes through a relay of the test's
 own that delivers every datagram and every TCP chunk 20 ms late, in both directions, and iptables
 drops a random 20 % of the relayed UDP datagrams, where the estimates ride (best effort, one per
-control period). TCP (declarations, liveliness, status, health) is delayed but not dropped: at 20 %
-segment loss TCP's retransmission back-off outlasts Zenoh's 1 s lease now and then, a session
-closes and reconnects, and the agents that lose their path to the leader hold for a moment; that
-case is not handled yet (docs/companion.md, "Absent neighbours, hold, rejoin"). The MAVLink links to the flight controllers are not impaired.
+control period). TCP (declarations, liveliness, status, health) is delayed but not dropped: with
+20 % of the TCP segments dropped too, 7 flights of 8 kept these bounds with the shipped Zenoh
+settings, and in the eighth two peers never formed a session; that case is not handled yet
+(docs/companion.md, "A lossy network"). The MAVLink links to the flight controllers are not
+impaired.
 
 Why real time. Delay and loss reach the control only when the clock is the wall's: on the
 simulator's lockstep clock every companion waits for every estimate, which then rides TCP, so the
