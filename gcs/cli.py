@@ -97,10 +97,6 @@ def sim(
     figures: Annotated[bool, typer.Option(help="Write the PNG figures.")] = True,
 ) -> None:
     """Fly a plan in-process: N simulated tri-rotors and their controllers in one process."""
-    from triswarm.protocol import metrics
-    from triswarm.sitl.simulation import SensorNoise, SimConfig, simulate
-
-    from . import plots, report
     from .scenarios import load_plan
 
     with user_errors():
@@ -122,6 +118,12 @@ def sim(
         if steps < 1 or abs(steps * rate - physics_hz) > 1e-6 * physics_hz:
             raise UserError(f"--physics-hz {physics_hz:g} must be a whole multiple of the plan's control rate {rate:g} Hz")
         duration = plan.duration_s if duration_s is None else duration_s
+        # (the flight's modules once the flags are known good: a mistake is said in half the time)
+        from triswarm.protocol import metrics
+        from triswarm.sitl.simulation import SensorNoise, SimConfig, simulate
+
+        from . import plots, report
+
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
                            wind=wind)
