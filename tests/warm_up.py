@@ -2,8 +2,8 @@
 
 On a fresh clone every process that needs the kernels would otherwise compile them at the same time,
 and a whole-stack test's first seconds would go to the compiler. ``make test`` compiles them before its
-two runs, in two processes at once, one per part (the parts take about as long: 3 and 6 s on a fresh
-clone); a plain ``pytest`` does it at its start (tests/conftest.py).
+two runs, in two processes at once, one per part (3 and 6 s of compiling on a fresh clone); a plain
+``pytest`` does it at its start (tests/conftest.py).
 
     python -m tests.warm_up PART
 """
