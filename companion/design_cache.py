@@ -7,8 +7,8 @@ failsafe that much longer.
 One file per equation, named by a digest of its matrices, in a folder named by the versions of
 python-control and SciPy that solved it: beside protocol/'s compiled code (``protocol/__pycache__``)
 where that can be written, else in ``$XDG_CACHE_HOME/triswarm`` (``~/.cache/triswarm``). Files are
-written whole (``state.write_atomically``: a temporary file, fsync, a rename): processes that start together may each solve and
-write, and a reader sees a whole file or none. A folder that cannot be written keeps nothing, and
+written whole (``state.write_atomically``: a temporary file, fsync, a rename): processes that start
+together may each solve and write, and a reader sees a whole file or none. A folder that cannot be written keeps nothing, and
 the design is solved each time; nothing else changes."""
 
 from __future__ import annotations

@@ -17,8 +17,7 @@ from functools import cached_property
 import numpy as np
 
 from . import kernels
-from .airframe import ParameterError
-from .errors import FormationError
+from .errors import FormationError, ParameterError
 from .graph import Schedule
 from .rfl import RFL
 
