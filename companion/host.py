@@ -20,7 +20,7 @@ from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import PlanError, plan_from_dict
 
 from .agent import Agent, CompanionOptions
-from .bus import Bus, close_session, default_config, open_session, peer_config, tune
+from .bus import Bus, close_session, copies_backup, default_config, open_session, peer_config, tune
 from .flight import SharedEntry
 from .loop import ControlLoop
 
@@ -80,6 +80,7 @@ class Host:
     def __init__(self, options: list[CompanionOptions]) -> None:
         self.options = options
         self._session = None
+        self._copies = True
         self._buses: dict[str, Bus] = {}
         self._controllers: dict[tuple, tuple] = {}
         self._entries: dict[tuple, tuple] = {}
@@ -90,8 +91,10 @@ class Host:
         if bus is None:
             if self._session is None:
                 agents = frozenset(o.agent for o in self.options)
-                self._session = open_session(zenoh_config(self.options[0], agents, n_agents))
-            bus = self._buses[swarm] = Bus(swarm, n_agents)
+                config = zenoh_config(self.options[0], agents, n_agents)
+                self._copies = copies_backup(config)
+                self._session = open_session(config)
+            bus = self._buses[swarm] = Bus(swarm, n_agents, copies=self._copies)
             bus.open(self._session, self.loop)
             self.loop_ctl.watch(bus)
         bus.n_agents = max(bus.n_agents, n_agents)

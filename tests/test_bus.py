@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_config, peer_config, tune
+from triswarm.companion.bus import COPY_EVERY, Bus, close_session, copies_backup, default_config, peer_config, tune
 from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
 
@@ -185,6 +185,45 @@ def test_shipped_configs_client_through_a_router(swarm):
             router.close()
 
     asyncio.run(asyncio.wait_for(scenario(), 60.0))
+
+
+def test_reliable_copies_only_beside_a_link_of_their_own():
+    """The estimates get reliable copies when they ride a plain UDP link beside a reliable one, and
+    only then: not on TCP alone (they are reliable there already), not on plain UDP alone (the
+    copies would ride the same lossy link), not on a reliable UDP link (QUIC), where the copies
+    share the connection's congestion window with the estimates they back up."""
+    def config(*endpoints: str) -> zenoh.Config:
+        return peer_config(list(endpoints[:1]), list(endpoints[1:]))
+
+    assert copies_backup(default_config(1, 3))
+    assert copies_backup(config("tcp/127.0.0.1:7447", "udp/127.0.0.1:7448"))
+    assert copies_backup(config("tls/127.0.0.1:7447", "udp/127.0.0.1:7448?rel=0"))
+    assert copies_backup(config("udp/127.0.0.1:7447?rel=1", "udp/127.0.0.1:7448"))  # (QUIC beside plain UDP)
+    assert not copies_backup(config("tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"))
+    assert not copies_backup(config("udp/127.0.0.1:7447", "udp/127.0.0.1:7448"))
+    assert not copies_backup(config("udp/127.0.0.1:7447?rel=1;mixed_rel=1", "udp/127.0.0.1:7448?mixed_rel=1;rel=1"))
+    by_mode = zenoh.Config()
+    by_mode.insert_json5("connect/endpoints", json.dumps({"peer": ["udp/10.0.0.2:7447"], "router": ["tcp/10.0.0.1:7447"]}))
+    assert copies_backup(by_mode)
+    for name, expected in (("companion-peer.json5", False), ("companion-client.json5", True), ("companion-mtls.json5", False)):
+        assert copies_backup(zenoh.Config.from_file(str(DEPLOY / name))) is expected, name
+
+
+def test_a_bus_without_copies_declares_none(swarm):
+    """A bus told to send no copies (a reliable UDP link) publishes each estimate once."""
+    port = free_ports(1)[0]
+    config = peer_config([f"udp/127.0.0.1:{port}?rel=1;mixed_rel=1"], [])
+
+    async def scenario():
+        bus = Bus(swarm, 2, copies=copies_backup(config))
+        bus.open(config, asyncio.get_running_loop())
+        try:
+            bus.join(1, PLAN, frozenset({2}))
+            assert bus.members[1].copy_publisher is None
+        finally:
+            bus.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 30.0))
 
 
 def test_a_close_its_peers_do_not_answer_ends_the_process_as_usual(caplog):
