@@ -236,8 +236,11 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
     for drone in (1, 2):
         # every frame the monitor got, this station got too; and while the monitor listened, it got
         # every frame this station got (sharing the stream, each would miss about half)
+        # (how many frames come in the monitor's 1.5 s of wall time depends on how fast the machine
+        # runs the lockstep clock: 8 on a loaded one. Shared, the frames would alternate between the
+        # two stations, and with 4 the monitor would miss at least 2 of them)
         mine, its = sorted(t for d, t in here if d == drone), sorted(t for d, t in there if d == drone)
-        assert len(its) >= 10 and set(its) <= set(mine), (drone, its, mine)
+        assert len(its) >= 4 and set(its) <= set(mine), (drone, its, mine)
         during = [t for t in mine if its[0] <= t <= its[-1]]
         assert len(its) >= 0.95 * len(during), (drone, len(its), len(during))
     assert done.returncode == 0, done.stdout + done.stderr
