@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.conftest import PAPER_PLAN_FILE  # noqa: E402
-from tests.netem import DelayRelay  # noqa: E402
+from tests.netem import DelayRelay, shipped_peer_endpoints  # noqa: E402
 from tests.priority import prioritise  # noqa: E402
 from tests.stack_helpers import judge  # noqa: E402
 from triswarm.gcs.link import GroundLink  # noqa: E402
@@ -42,29 +42,13 @@ START_IN_S = 5.0     # from the last companion ready to the start (they arm 2 s 
 READY_WITHIN_S = 120.0
 
 
-SHIPPED_PEER_CONFIG = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "companion-peer.json5"
-
-
-def shipped_endpoints(port: int) -> list[str]:
-    """The endpoints of the shipped peer configuration (their protocols and options) at 127.0.0.1:port."""
-    import zenoh
-
-    listen = json.loads(zenoh.Config.from_file(str(SHIPPED_PEER_CONFIG)).get_json("listen/endpoints"))
-    out = []
-    for endpoint in listen:
-        protocol, rest = endpoint.split("/", 1)
-        options = rest.partition("?")[2]
-        out.append(f"{protocol}/127.0.0.1:{port}" + (f"?{options}" if options else ""))
-    return out
-
-
 def zenoh_args(i: int) -> list[str]:
     """Agent i's Zenoh endpoints as the shipped peer configuration makes them: it listens on its own
     port and connects to every other agent through the relay."""
-    args = [f"--zenoh-listen={e}" for e in shipped_endpoints(ZENOH_BASE + i)]
+    args = [f"--zenoh-listen={e}" for e in shipped_peer_endpoints(ZENOH_BASE + i)]
     for j in range(1, N + 1):
         if j != i:
-            args += [f"--zenoh-connect={e}" for e in shipped_endpoints(RELAY_BASE + j)]
+            args += [f"--zenoh-connect={e}" for e in shipped_peer_endpoints(RELAY_BASE + j)]
     return args
 
 

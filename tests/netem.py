@@ -11,6 +11,29 @@ import signal
 import subprocess
 import threading
 from collections import Counter
+from pathlib import Path
+
+
+SHIPPED_PEER_CONFIG = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "companion-peer.json5"
+
+
+def at_loopback(endpoints: list[str], port: int) -> list[str]:
+    """``endpoints`` (their protocols and options) moved to 127.0.0.1:port."""
+    out = []
+    for endpoint in endpoints:
+        protocol, rest = endpoint.split("/", 1)
+        options = rest.partition("?")[2]
+        out.append(f"{protocol}/127.0.0.1:{port}" + (f"?{options}" if options else ""))
+    return out
+
+
+def shipped_peer_endpoints(port: int) -> list[str]:
+    """The endpoints of the shipped peer configuration (deploy/zenoh/companion-peer.json5) at 127.0.0.1:port."""
+    import json
+
+    import zenoh
+
+    return at_loopback(json.loads(zenoh.Config.from_file(str(SHIPPED_PEER_CONFIG)).get_json("listen/endpoints")), port)
 
 
 def need_netns(tools: tuple[str, ...] = ("ip", "iptables"), problem: str | None = None) -> None:

@@ -36,16 +36,15 @@ ZENOH_BASE = 17447   # peer i listens on base + i: the namespace is ours alone
 RELAY_BASE = 18447   # and is reached through the relay at relay base + i
 PLAN = 0x5EED
 WARM_UP_S = 5.0      # estimate gaps are counted from this long after a peer's start
-LAYOUTS = {"tcp+udp": (["tcp", "udp"], None), "quic": (["udp?rel=1;mixed_rel=1"], None),
-           "quic-with-copies": (["udp?rel=1;mixed_rel=1"], True)}
+LAYOUTS = {"tcp+udp": ("default", None), "quic": ("shipped", None), "quic-with-copies": ("shipped", True)}
+"""Layout -> (whose endpoints: the loopback default's or the shipped peer configuration's; the
+reliable copies forced on, or None: as the companion decides)."""
 
 
-def endpoints(protocols: list[str], port: int) -> list[str]:
-    out = []
-    for p in protocols:
-        protocol, _, options = p.partition("?")
-        out.append(f"{protocol}/127.0.0.1:{port}" + (f"?{options}" if options else ""))
-    return out
+def endpoints(layout: str, port: int) -> list[str]:
+    from tests.netem import at_loopback, shipped_peer_endpoints
+
+    return at_loopback(["tcp/", "udp/"], port) if LAYOUTS[layout][0] == "default" else shipped_peer_endpoints(port)
 
 
 def peer(i: int, n: int, layout: str, snapshot_at: float, out: Path) -> None:
@@ -55,9 +54,9 @@ def peer(i: int, n: int, layout: str, snapshot_at: float, out: Path) -> None:
     from triswarm.companion.bus import Bus, copies_backup, peer_config
     from triswarm.protocol.codec import AgentStatus, agent_of_key
 
-    protocols, copies = LAYOUTS[layout]
-    config = peer_config(endpoints(protocols, ZENOH_BASE + i),
-                         [e for j in range(1, n + 1) if j != i for e in endpoints(protocols, RELAY_BASE + j)])
+    copies = LAYOUTS[layout][1]
+    config = peer_config(endpoints(layout, ZENOH_BASE + i),
+                         [e for j in range(1, n + 1) if j != i for e in endpoints(layout, RELAY_BASE + j)])
     others = [j for j in range(1, n + 1) if j != i]
     xi = np.linspace(-1.0, 1.0, 12)
 
