@@ -31,6 +31,10 @@ STALE_S = 3.0
 FAILSAFE_TEXT_S = 10.0
 """A flight controller's STATUSTEXT about a failsafe counts this long (unless it says it cleared)."""
 ONCE_LISTEN_S = 1.5
+ONCE_MAX_S = 3.5
+"""``--once`` listens ONCE_LISTEN_S, and on until every drone's flight controller and companion
+have been heard with the companion's once-a-second values, at most ONCE_MAX_S (a loaded machine
+delays them)."""
 TEXT_CHARS = 40
 PLAIN_WIDTH = 200
 PHASES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding", 4: "fc lost"}
@@ -75,6 +79,12 @@ def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[flo
     return out
 
 
+def _reported(seen: Mapping[tuple[int, int], Seen], drones: Iterable[int]) -> bool:
+    """Every drone's flight controller heard (a heartbeat) and its companion's values too."""
+    return all(seen.get((i, COMP_AUTOPILOT), Seen()).heartbeat is not None and seen.get((i, COMP_ONBOARD), Seen()).named
+               for i in drones)
+
+
 def _failsafe_said(texts: list[tuple[float, int, str]], now: float) -> bool:
     """The flight controller's last word on a failsafe is recent and did not clear it."""
     said = [text.lower() for at, _, text in texts if "failsafe" in text.lower() and now - at <= FAILSAFE_TEXT_S]
@@ -113,7 +123,7 @@ def monitor(
     signing_key: SigningKey = None,
     rate_hz: Annotated[float, typer.Option("--rate-hz", help="Refresh rate [Hz].")] = 5.0,
     duration_s: Annotated[Optional[float], typer.Option("--duration-s", help="Stop after this long [s].")] = None,
-    once: Annotated[bool, typer.Option("--once", help=f"Listen {ONCE_LISTEN_S:g} s, print one table and exit.")] = False,
+    once: Annotated[bool, typer.Option("--once", help=f"Listen {ONCE_LISTEN_S:g} s (up to {ONCE_MAX_S:g} s, until every drone's companion has reported), print one table and exit.")] = False,
 ) -> None:
     """Watch the swarm: a live table, one row per drone (plain tables when stdout is not a terminal).
     Ctrl-C stops."""
@@ -132,7 +142,10 @@ def monitor(
             return table(rows(link.seen, positions, chosen, time.time()))
 
         if once:
+            deadline = time.monotonic() + ONCE_MAX_S
             stop.wait(ONCE_LISTEN_S)
+            while not (stop.is_set() or time.monotonic() >= deadline or _reported(link.seen, chosen)):
+                stop.wait(0.1)
             plain.print(current())
         elif not console.is_terminal:
             for _ in _ticks(1.0 / rate_hz, duration_s, stop):
