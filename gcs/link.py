@@ -78,6 +78,8 @@ class Seen:
 
     heartbeat: object = None
     heartbeat_at: float = 0.0
+    heartbeats: int = 0
+    """How many heartbeats were heard."""
     named: dict = field(default_factory=dict)
     """NAMED_VALUE_FLOAT name -> (value, Unix time received)."""
     texts: list = field(default_factory=list)
@@ -276,6 +278,7 @@ class GroundLink:
                 self._fc_clock(src[0], msg)
             if t == "HEARTBEAT":
                 seen.heartbeat, seen.heartbeat_at = msg, now
+                seen.heartbeats += 1
             elif t == "NAMED_VALUE_FLOAT":
                 seen.named[msg.name] = (msg.value, now)
             elif t == "STATUSTEXT":
