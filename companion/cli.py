@@ -40,7 +40,7 @@ def companion(
     zenoh_listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on (repeat).")] = None,
     zenoh_connect: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to connect to (repeat).")] = None,
     zenoh_mode: Annotated[str, typer.Option(help="Zenoh mode with --zenoh-listen/--zenoh-connect: peer or client.")] = "peer",
-    zenoh_base_port: Annotated[int, typer.Option(help="Default peers on loopback: agent i uses TCP and UDP port base+i.")] = 17447,
+    zenoh_base_port: Annotated[int, typer.Option(help="Default peers on one machine: agent i listens on TCP port base+i.")] = 17447,
     rate_hz: Annotated[float, typer.Option(help="Control rate [Hz] (the telemetry rate it asks for).")] = 200.0,
     gcs_frames_per_s: Annotated[float, typer.Option(help="Frames a second one ground station may send beyond a burst "
                                                          "of twice that; beyond: dropped, counted and said once "

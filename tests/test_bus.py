@@ -195,7 +195,8 @@ def test_reliable_copies_only_beside_a_link_of_their_own():
     def config(*endpoints: str) -> zenoh.Config:
         return peer_config(list(endpoints[:1]), list(endpoints[1:]))
 
-    assert copies_backup(default_config(1, 3))
+    assert not copies_backup(default_config(1, 3))  # (TCP alone on one machine)
+    assert copies_backup(default_config(1, 3, protocols=("tcp", "udp")))
     assert copies_backup(config("tcp/127.0.0.1:7447", "udp/127.0.0.1:7448"))
     assert copies_backup(config("tls/127.0.0.1:7447", "udp/127.0.0.1:7448?rel=0"))
     assert copies_backup(config("udp/127.0.0.1:7447?rel=1", "udp/127.0.0.1:7448"))  # (QUIC beside plain UDP)

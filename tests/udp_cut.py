@@ -30,6 +30,7 @@ from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_confi
 from triswarm.protocol.codec import AgentStatus, decode_header, estimate_key  # noqa: E402
 
 PLAN, RATE_HZ, BEFORE, AFTER = 0x5EED, 200.0, 200, 400
+TCP_AND_UDP = ("tcp", "udp")  # the layout with reliable copies (``copies_backup``)
 
 
 def udp_packets() -> int:
@@ -50,10 +51,10 @@ async def main(out: Path, base: int) -> tuple:
         with lock:
             got.append(seq)
 
-    listener = zenoh.open(default_config(2, 2, base))
+    listener = zenoh.open(default_config(2, 2, base, protocols=TCP_AND_UDP))
     sub = listener.declare_subscriber(estimate_key(swarm, 1), take)
     bus = Bus(swarm, 2)
-    bus.open(default_config(1, 2, base), asyncio.get_running_loop())
+    bus.open(default_config(1, 2, base, protocols=TCP_AND_UDP), asyncio.get_running_loop())
     bus.join(1, PLAN, frozenset())
     try:
         xi = np.zeros(12)

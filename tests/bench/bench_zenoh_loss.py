@@ -13,7 +13,7 @@ lacks one of these for some neighbour.
     python tests/bench/bench_zenoh_loss.py [--layouts tcp+udp,quic,quic-with-copies] [--runs 4]
         [--peers 6] [--duration-s 20] [--drop 0.2] [--delay-ms 20]
 
-Layouts: ``tcp+udp`` (a TCP and a UDP link per peer, the default on loopback), ``quic`` (one
+Layouts: ``tcp+udp`` (a TCP and a UDP link per peer, as in the client configuration), ``quic`` (one
 reliable UDP link per peer, the shipped peer configuration's), ``quic-with-copies`` (the same with
 the reliable copies of the estimates forced on).
 """
@@ -36,15 +36,15 @@ ZENOH_BASE = 17447   # peer i listens on base + i: the namespace is ours alone
 RELAY_BASE = 18447   # and is reached through the relay at relay base + i
 PLAN = 0x5EED
 WARM_UP_S = 5.0      # estimate gaps are counted from this long after a peer's start
-LAYOUTS = {"tcp+udp": ("default", None), "quic": ("shipped", None), "quic-with-copies": ("shipped", True)}
-"""Layout -> (whose endpoints: the loopback default's or the shipped peer configuration's; the
-reliable copies forced on, or None: as the companion decides)."""
+LAYOUTS = {"tcp+udp": ("tcp+udp", None), "quic": ("shipped", None), "quic-with-copies": ("shipped", True)}
+"""Layout -> (its endpoints: a TCP and a UDP one, or the shipped peer configuration's; the reliable
+copies forced on, or None: as the companion decides)."""
 
 
 def endpoints(layout: str, port: int) -> list[str]:
     from tests.netem import at_loopback, shipped_peer_endpoints
 
-    return at_loopback(["tcp/", "udp/"], port) if LAYOUTS[layout][0] == "default" else shipped_peer_endpoints(port)
+    return at_loopback(["tcp/", "udp/"], port) if LAYOUTS[layout][0] == "tcp+udp" else shipped_peer_endpoints(port)
 
 
 def peer(i: int, n: int, layout: str, snapshot_at: float, out: Path) -> None:
