@@ -66,30 +66,46 @@ class Shedder:
         return False
 
 
+QUIET_S = 2.0
+"""A flood is over once nothing more was dropped for this long [s] after the first quiet look: a
+sender that pauses (or a busy machine that stalls it) for a second or two is one flood, not one a
+pause."""
+
+
 @dataclass
 class Episodes:
     """Floods told once each: looked at now and then (once a second), counts of drops by key say
-    which keys began to drop since the last look and which stopped (nothing more since the last
-    look, or the key is gone), with what they dropped in the episode and how long it lasted [s]."""
+    which keys began to drop since the last look and which stopped (nothing more since a look
+    ``quiet_s`` ago, or the key is gone), with what they dropped in the episode and how long it
+    lasted [s]: from the look that saw it begin to the first that saw nothing more."""
 
+    quiet_s: float = QUIET_S
     _told: dict = field(default_factory=dict)
     _open: dict = field(default_factory=dict)
-    """Keys dropping: (their count when it began, when it began [s])."""
+    """Keys dropping: [their count when it began, when it began [s], the first quiet look since
+    the last drop [s] or None]."""
 
     def look(self, counts, now_s: float) -> tuple[list[tuple[object, int]], list[tuple[object, int, float]]]:
         began, ended = [], []
         for key, n in counts.items():
             before = self._told.get(key, 0)
             self._told[key] = n
-            if n != before and key not in self._open:
-                self._open[key] = (before, now_s)
-                began.append((key, n - before))
-            elif n == before and key in self._open:
-                at_start, since_s = self._open.pop(key)
-                ended.append((key, n - at_start, now_s - since_s))
+            episode = self._open.get(key)
+            if n != before:
+                if episode is None:
+                    self._open[key] = [before, now_s, None]
+                    began.append((key, n - before))
+                else:
+                    episode[2] = None
+            elif episode is not None:
+                if episode[2] is None:
+                    episode[2] = now_s
+                if now_s - episode[2] >= self.quiet_s:
+                    del self._open[key]
+                    ended.append((key, n - episode[0], episode[2] - episode[1]))
         for key in [k for k in self._open if k not in counts]:
-            at_start, since_s = self._open.pop(key)
-            ended.append((key, self._told.pop(key) - at_start, now_s - since_s))
+            at_start, since_s, quiet_since_s = self._open.pop(key)
+            ended.append((key, self._told.pop(key) - at_start, (now_s if quiet_since_s is None else quiet_since_s) - since_s))
         for key in [k for k in self._told if k not in counts]:
             del self._told[key]
         return began, ended

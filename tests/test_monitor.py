@@ -257,15 +257,24 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
                                                "--wait-s", "120", "--tlog", str(tmp_path / "monitor.tlog")),
                                       capture_output=True, text=True, timeout=150)
                 listened_s = time.monotonic() - started
-                here = [(m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: attitudes.get(0.0), None)]
+                tlog = mavutil.mavlink_connection(str(tmp_path / "monitor.tlog"))
+                there = [(m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: tlog.recv_match(type="ATTITUDE"), None)]
+                tlog.close()
+                assert there, done.stdout + done.stderr
+                # this station takes in what came up to the monitor's last frame (its reader may lag
+                # behind on a busy machine; the frames of each drone come in order on its link)
+                here = []
+
+                def caught_up() -> bool:
+                    here.extend((m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: attitudes.get(0.0), None))
+                    return all(max((t for d, t in here if d == drone), default=-1) >= t_last
+                               for drone, t_last in dict(sorted(there, key=lambda dt: dt[1])).items())
+
+                wait_for(caught_up, 60.0, "this station's frames past the monitor's last")
                 reported = {}  # drone -> the formation errors its companion reported meanwhile [m]
                 for m in iter(lambda: named.get(0.0), None):
                     if m.name == "FORM_ERRM":
                         reported.setdefault(m.get_srcSystem(), set()).add(f"{m.value:.3f}")
-    tlog = mavutil.mavlink_connection(str(tmp_path / "monitor.tlog"))
-    there = [(m.get_srcSystem(), m.time_boot_ms) for m in iter(lambda: tlog.recv_match(type="ATTITUDE"), None)]
-    tlog.close()
-    assert there, done.stdout + done.stderr
     for drone in (1, 2):
         # every frame the monitor got, this station got too; and while the monitor listened, it got
         # every frame this station got. Shared, the stream would go to one station or the other: in

@@ -32,7 +32,7 @@ def test_each_sender_has_its_own_bucket_and_the_table_is_bounded():
 
 
 def test_floods_are_told_once_when_they_begin_and_once_when_they_end():
-    e = Episodes()
+    e = Episodes(quiet_s=0.0)  # (over at the first look that sees nothing more)
     counts = Counter()
     assert e.look(counts, 0.0) == ([], [])
     counts["a"] += 10
@@ -48,3 +48,21 @@ def test_floods_are_told_once_when_they_begin_and_once_when_they_end():
     assert e.look(counts, 6.0) == ([("a", 1)], [])
     del counts["a"]  # (its sender forgotten): its flood ends
     assert e.look(counts, 7.0) == ([], [("a", 1, 1.0)])
+
+
+def test_a_flood_that_pauses_for_less_than_the_quiet_time_is_one_flood():
+    e = Episodes(quiet_s=2.0)
+    counts = Counter(a=10)
+    assert e.look(counts, 1.0) == ([("a", 10)], [])
+    assert e.look(counts, 2.0) == ([], [])  # paused: quiet since 2 s
+    assert e.look(counts, 3.0) == ([], [])
+    counts["a"] += 20  # on again within the quiet time: the same flood, not said again
+    assert e.look(counts, 3.5) == ([], [])
+    assert e.look(counts, 4.5) == ([], [])  # quiet since 4.5 s
+    assert e.look(counts, 5.5) == ([], [])
+    assert e.look(counts, 6.5) == ([], [("a", 30, 3.5)])  # 2 s quiet: over; it lasted from 1 s to 4.5 s
+    assert e.look(counts, 7.5) == ([], [])
+    counts["a"] += 1
+    assert e.look(counts, 8.0) == ([("a", 1)], [])
+    del counts["a"]  # forgotten while dropping: over at once
+    assert e.look(counts, 9.0) == ([], [("a", 1, 1.0)])
