@@ -16,10 +16,10 @@ Declarations, liveliness, status and health are reliable. Three link layouts ser
 
 - one TCP link to each peer (``default_config``: peers on one machine): everything on it, no copies.
 - a TCP and a UDP link to each peer (``transport/unicast/max_links`` 2; good networks, the client
-  configuration): the estimates ride UDP, the rest TCP. Every ``COPY_EVERY``-th estimate also goes reliably, on TCP:
-  a UDP path that dies while TCP lives (on a lossy network, Zenoh's UDP listener can stop taking a
-  peer's datagrams for good, all its peers' at once) then costs a neighbour's estimates their
-  latency, not the neighbour. The copies that arrive after the best-effort original are dropped as
+  configuration): the estimates ride UDP, the rest TCP. Every ``COPY_EVERY``-th estimate also goes
+  reliably, on TCP: a UDP path that dies while TCP lives (on a lossy network, Zenoh's UDP listener
+  can stop taking a peer's datagrams for good, all its peers' at once) then costs a neighbour's
+  estimates their latency, not the neighbour. The copies that arrive after the best-effort original are dropped as
   old (``drop_old``).
 - one reliable UDP link to each peer (``udp/...?rel=1;mixed_rel=1``, QUIC: lossy networks,
   ``deploy/zenoh/companion-peer.json5``): the rest on its streams, the estimates as its datagrams,
