@@ -19,8 +19,8 @@ Declarations, liveliness, status and health are reliable. Three link layouts ser
   configuration): the estimates ride UDP, the rest TCP. Every ``COPY_EVERY``-th estimate also goes
   reliably, on TCP: a UDP path that dies while TCP lives (on a lossy network, Zenoh's UDP listener
   can stop taking a peer's datagrams for good, all its peers' at once) then costs a neighbour's
-  estimates their latency, not the neighbour. The copies that arrive after the best-effort original are dropped as
-  old (``drop_old``).
+  estimates their latency, not the neighbour. The copies that arrive after the best-effort original
+  are dropped as old (``drop_old``).
 - one reliable UDP link to each peer (``udp/...?rel=1;mixed_rel=1``, QUIC: lossy networks,
   ``deploy/zenoh/companion-peer.json5``): the rest on its streams, the estimates as its datagrams,
   and no copies, which would share the link's congestion window with the estimates they back up.

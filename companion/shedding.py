@@ -73,6 +73,14 @@ pause."""
 
 
 @dataclass
+class _Episode:
+    count_at_start: int
+    began_s: float
+    quiet_since_s: float | None = None
+    """The first look that saw nothing more since the last drop [s] (None while it drops)."""
+
+
+@dataclass
 class Episodes:
     """Floods told once each: looked at now and then (once a second), counts of drops by key say
     which keys began to drop since the last look and which stopped (nothing more since a look
@@ -82,30 +90,29 @@ class Episodes:
     quiet_s: float = QUIET_S
     _told: dict = field(default_factory=dict)
     _open: dict = field(default_factory=dict)
-    """Keys dropping: [their count when it began, when it began [s], the first quiet look since
-    the last drop [s] or None]."""
+    """Keys dropping -> their ``_Episode``."""
 
     def look(self, counts, now_s: float) -> tuple[list[tuple[object, int]], list[tuple[object, int, float]]]:
         began, ended = [], []
         for key, n in counts.items():
             before = self._told.get(key, 0)
             self._told[key] = n
-            episode = self._open.get(key)
+            e = self._open.get(key)
             if n != before:
-                if episode is None:
-                    self._open[key] = [before, now_s, None]
+                if e is None:
+                    self._open[key] = _Episode(before, now_s)
                     began.append((key, n - before))
                 else:
-                    episode[2] = None
-            elif episode is not None:
-                if episode[2] is None:
-                    episode[2] = now_s
-                if now_s - episode[2] >= self.quiet_s:
+                    e.quiet_since_s = None
+            elif e is not None:
+                e.quiet_since_s = now_s if e.quiet_since_s is None else e.quiet_since_s
+                if now_s - e.quiet_since_s >= self.quiet_s:
                     del self._open[key]
-                    ended.append((key, n - episode[0], episode[2] - episode[1]))
+                    ended.append((key, n - e.count_at_start, e.quiet_since_s - e.began_s))
         for key in [k for k in self._open if k not in counts]:
-            at_start, since_s, quiet_since_s = self._open.pop(key)
-            ended.append((key, self._told.pop(key) - at_start, (now_s if quiet_since_s is None else quiet_since_s) - since_s))
+            e = self._open.pop(key)
+            quiet_since_s = now_s if e.quiet_since_s is None else e.quiet_since_s
+            ended.append((key, self._told.pop(key) - e.count_at_start, quiet_since_s - e.began_s))
         for key in [k for k in self._told if k not in counts]:
             del self._told[key]
         return began, ended

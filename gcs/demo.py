@@ -25,7 +25,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
-from .errors import UserError, console, err_console, user_errors
+from .errors import UserError, console, err_console, require_positive, user_errors
 from .link import GroundLink, LinkError
 from .plot_cmd import plot
 from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
@@ -86,8 +86,7 @@ def demo(
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
-        if not (math.isfinite(duration_s) and duration_s > 0):
-            raise UserError(f"--duration-s must be a positive number, got {duration_s}")
+        require_positive(duration_s=duration_s)
         if agents_per_process < 0:
             raise UserError(f"--agents-per-process must not be negative, got {agents_per_process}")
         if max_rtf is not None and not (lockstep and math.isfinite(max_rtf) and max_rtf > 0):

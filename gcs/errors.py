@@ -41,6 +41,14 @@ def user_errors(*also: type[Exception]):
         raise typer.Exit(code=2) from None
 
 
+def require_positive(**options: float | None) -> None:
+    """Each option given (its name with ``_`` for ``-``; None: not given) is a positive finite number, or
+    the first that is not is the user's mistake."""
+    for name, value in options.items():
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UserError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+
+
 def short_number(x: float | None) -> str:
     """A short, honest rendering for tables: tiny errors in scientific notation rather than 0.0000."""
     if x is None or not math.isfinite(x):

@@ -20,7 +20,7 @@ from rich.text import Text
 
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, mode_name
 
-from .errors import UserError, console, user_errors
+from .errors import console, require_positive, user_errors
 from .link import Seen, Subscription
 from .swarm_cmd import DEFAULT_TLOG, Drones, Endpoints, Manifest, SigningKey, Tlog, swarm_link
 
@@ -128,12 +128,7 @@ def monitor(
     """Watch the swarm: a live table, one row per drone (plain tables when stdout is not a terminal).
     Ctrl-C stops."""
     with user_errors():
-        if not (math.isfinite(rate_hz) and rate_hz > 0):
-            raise UserError(f"--rate-hz must be a positive number, got {rate_hz}")
-        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
-            raise UserError(f"--duration-s must be a positive number, got {duration_s}")
-        if not (math.isfinite(wait_s) and wait_s > 0):
-            raise UserError(f"--wait-s must be a positive number, got {wait_s}")
+        require_positive(rate_hz=rate_hz, duration_s=duration_s, wait_s=wait_s)
     plain = console if console.is_terminal else Console(width=PLAIN_WIDTH)
     with _ctrl_c() as stop, swarm_link(manifest, endpoint, drone, tlog, signing_key, require_all=False) as (link, chosen), \
             link.subscribe(None, COMP_AUTOPILOT, "LOCAL_POSITION_NED") as sub:

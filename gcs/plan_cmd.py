@@ -16,7 +16,7 @@ from rich.table import Table
 from triswarm.protocol.airframe import RPM_TO_RAD_S
 from triswarm.protocol.errors import PlanError
 
-from .errors import UserError, console, user_errors
+from .errors import UserError, console, require_positive, user_errors
 from .report import design_summary
 from .scenarios import PlanArgument, load_plan
 
@@ -59,10 +59,8 @@ def check(
     stay within the bounds over the settled window. "plan OK" means all of that passed. A refused
     plan ends with one sentence and exit status 2."""
     with user_errors():
-        for name, value in (("horizon-s", horizon_s), ("min-separation-m", min_separation_m),
-                            ("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise UserError(f"--{name} must be a positive number, got {value}")
+        require_positive(horizon_s=horizon_s, min_separation_m=min_separation_m, position_bound_m=position_bound_m,
+                         attitude_bound_rad=attitude_bound_rad)
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
         plan = load_plan(plan_name, drones)

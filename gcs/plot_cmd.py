@@ -12,7 +12,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from .errors import UserError, console, short_number, user_errors
+from .errors import UserError, console, require_positive, short_number, user_errors
 from .scenarios import load_plan
 
 if TYPE_CHECKING:
@@ -42,9 +42,7 @@ def plot(
     with user_errors(RunLogError):
         if not math.isfinite(window_start_s):
             raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
-        for name, value in (("position-bound-m", position_bound_m), ("attitude-bound-rad", attitude_bound_rad)):
-            if not (math.isfinite(value) and value > 0):
-                raise UserError(f"--{name} must be a positive number, got {value}")
+        require_positive(position_bound_m=position_bound_m, attitude_bound_rad=attitude_bound_rad)
         if not run.is_dir():
             raise UserError(f"{run}: no such run folder")
         for name in RUN_FILES:
