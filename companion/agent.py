@@ -1,7 +1,8 @@
 """One agent of a companion process: one drone's formation controller between its flight controller
 and its neighbours, made of rooms that each have one job:
 
-- ``autopilot.Autopilot``: the flight controller (link, state, clock, telemetry, commands);
+- ``flight_controller.FlightController``: the flight controller (link, state, clock, telemetry,
+  commands), with its ``Autopilot`` (``autopilots/``: what differs between kinds of flight controller);
 - ``ground_station.GroundStation``: the ground station (link, routing, parameters, commands);
 - ``plan_server.PlanServer``: plans up and down the ground-station link (the mission protocol);
 - ``plans.Plans``: the plan in force, the one staged, leader moves, kept across restarts;
@@ -30,8 +31,6 @@ import asyncio
 import logging
 import math
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -43,11 +42,12 @@ from triswarm.protocol.stall import Stalls
 
 from triswarm.protocol.timesync import start_clock_problem
 
-from .autopilot import Autopilot
+from .flight_controller import FlightController
 from .clock import OFFSET_STEP_US, kernel_clock
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
 from .ground_station import GroundStation, Params
 from .health import LoopHealth
+from .options import CompanionOptions, home_of
 from .plan_server import PlanServer
 from .plans import Plans
 from .state import StateStore, read_signing_key
@@ -77,37 +77,15 @@ class AgentLog(logging.LoggerAdapter):
         return (msg if str(msg).startswith(prefix) else prefix + str(msg)), kwargs
 
 
-@dataclass(frozen=True)
-class CompanionOptions:
-    agent: int
-    fc_url: str
-    gcs_url: str
-    plan_path: Path | None = None
-    autostart: bool = False
-    start_at_unix_s: float | None = None
-    zenoh_config: Path | None = None
-    zenoh_listen: tuple[str, ...] = ()
-    zenoh_connect: tuple[str, ...] = ()
-    zenoh_mode: str = "peer"
-    zenoh_base_port: int = 17447
-    rate_hz: float = 200.0
-    state_dir: Path | None = None
-    swarm: str | None = None
-    stats_path: Path | None = None
-    signing_key_path: Path | None = None
-    gcs_frames_per_s: float = 100.0
-    """Frames a second of one sender on the ground-station link (a burst of twice that); 0: no limit."""
-
-
 class Agent:
     """``host``: the process (its bus, controllers and loop); ``row``: this agent's row in them."""
 
     def __init__(self, opts: CompanionOptions, host, row: int) -> None:
         self.opts, self.host, self.row = opts, host, row
-        self.id = opts.agent
-        self.log = AgentLog(log, {"agent": opts.agent})
+        self.id = opts.id
+        self.log = AgentLog(log, {"agent": opts.id})
         try:
-            key = None if opts.signing_key_path is None else read_signing_key(opts.signing_key_path)
+            key = None if opts.signing_key is None else read_signing_key(opts.signing_key)
         except ValueError as exc:  # (one sentence: the file and what is wrong with it)
             raise StartupError(str(exc)) from None
         self.store = StateStore(opts.state_dir, lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING))
@@ -115,12 +93,12 @@ class Agent:
         """The control rate [Hz]: the rate asked for, or the one the attitude comes at."""
         self.params = Params(opts.rate_hz)
         self.health = LoopHealth(1.0 / opts.rate_hz)
-        self.autopilot = Autopilot(self.id, opts.fc_url, self.log, self._fc_state)
-        self.autopilot.link.after_read = lambda: host.loop_ctl.due(self)
-        self.gcs = GroundStation(self, opts.gcs_url, key)
-        for link in (self.autopilot.link, self.gcs.link):  # (a serial port that failed, and is back)
+        self.fc = FlightController(self.id, opts.fc, self.log, self._fc_state, opts.fc_profile, home_of(opts))
+        self.fc.link.after_read = lambda: host.loop_ctl.due(self)
+        self.gcs = GroundStation(self, opts.gcs, key)
+        for link in (self.fc.link, self.gcs.link):  # (a serial port that failed, and is back)
             link.on_event = lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING)
-        self.plans = Plans(self.id, self.store, self.autopilot.clock, self.log, self._reopen, self._schedule,
+        self.plans = Plans(self.id, self.store, self.fc.clock, self.log, self._reopen, self._schedule,
                            lambda: self.flight.in_flight)
         self.plans.clock_check = self.start_clock_problem
         self.kernel_clock = kernel_clock
@@ -166,7 +144,7 @@ class Agent:
         return self.plans.plan.rfl
 
     def plan_time(self, boot_us: int) -> float:
-        return self.autopilot.clock.plan_time(boot_us, self.plans.mission.start_unix_s)
+        return self.fc.clock.plan_time(boot_us, self.plans.mission.start_unix_s)
 
     def controller_reset(self, x: np.ndarray) -> None:
         self.bank.reset(x[None, :], rows=np.array([self.row]))
@@ -217,7 +195,7 @@ class Agent:
             self.bus.leave(self.id)
         self.bus = self.host.bus(self.opts.swarm or plan.name, plan.n_agents)
         self.bus.join(self.id, self.plans.mission.plan_id, self.listen_to)
-        if self.autopilot.answers.lockstep:
+        if self.fc.answers.lockstep:
             self.bus.reliable_estimates()
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.design = plan.design
@@ -264,12 +242,12 @@ class Agent:
 
     async def run(self, stop: asyncio.Event) -> dict:
         self.loop = asyncio.get_running_loop()
-        self.plans.load(self.opts.plan_path)
+        self.plans.load(self.opts.plan)
         self.gcs.restore_signing_streams()
         tasks: list[asyncio.Task] = []
         try:
             try:
-                self.autopilot.link.open(self.loop, lambda link, msgs, t_rx: self.gcs.from_fc(msgs, t_rx))
+                self.fc.link.open(self.loop, lambda link, msgs, t_rx: self.gcs.from_fc(msgs, t_rx))
                 self.gcs.link.open(self.loop, self.gcs.from_gcs)
             except OSError as exc:  # (MavLink.open: one sentence naming the link and its URL)
                 raise StartupError(str(exc)) from None
@@ -283,10 +261,10 @@ class Agent:
             tasks.append(asyncio.create_task(self._every_second()))
             tasks.append(asyncio.create_task(self._poll_plans()))
             tasks.append(asyncio.create_task(self._mission_task()))
-            tasks.append(asyncio.create_task(self.autopilot.keep_time()))
+            tasks.append(asyncio.create_task(self.fc.keep_time()))
             await stop.wait()
         finally:  # stop ticking first, then the tasks, then the bus
-            for link in (self.autopilot.link, self.gcs.link):
+            for link in (self.fc.link, self.gcs.link):
                 link.close()
             self.host.loop_ctl.forget(self)
             start = self.flight.cancel_start()
@@ -310,12 +288,12 @@ class Agent:
     async def _setup_fc(self) -> None:
         """Set the flight controller up (``Autopilot.setup``) and run at the rate it sends at."""
         af = self.plans.plan.airframe if self.plans.plan is not None else TABLE_1
-        rate_hz = await self.autopilot.setup(self.rate_hz, self.heartbeat,
+        rate_hz = await self.fc.setup(self.rate_hz, self.heartbeat,
                                              (af.max_rotor_speed_rad_s * 30.0 / math.pi, math.degrees(af.servo_limit_rad)),
                                              self.say)
         if rate_hz != self.rate_hz:
             self.set_rate(rate_hz)
-        if self.bus is not None and self.autopilot.answers.lockstep:
+        if self.bus is not None and self.fc.answers.lockstep:
             self.bus.reliable_estimates()
 
     async def _mission(self) -> None:
@@ -324,7 +302,7 @@ class Agent:
         if m is None:
             self.log.info(f"agent {self.id}: no plan; waiting for one")
             return
-        now = self.autopilot.now_unix()
+        now = self.fc.now_unix()
         if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
             self.say("resuming plan after restart")
             await self.flight.resume()
@@ -334,7 +312,7 @@ class Agent:
             if problem:
                 self.say(f"plan start refused: {problem}", mavlink.MAV_SEVERITY_ERROR)
                 return
-            m.start_unix_s = self.opts.start_at_unix_s or default_start_time(now)
+            m.start_unix_s = self.opts.start_at or default_start_time(now)
             m.phase = "scheduled"
             self.plans.save()
         if m.phase == "scheduled":
@@ -350,7 +328,7 @@ class Agent:
             self.watch_fc()
             self.tell_others()
             hb = self.heartbeat()
-            for link in (self.autopilot.link, self.gcs.link):
+            for link in (self.fc.link, self.gcs.link):
                 link.send(hb)
             self.gcs.tell_refusals()
             self.gcs.tell_floods()
@@ -366,7 +344,7 @@ class Agent:
         """Why a plan must not start on the flight controller's clock now, or None (its SYSTEM_TIME
         against the companion's clock through TIMESYNC, and the companion's clock's error). Not
         checked with triswarm's simulator, whose clock is its host's, shared with the companions."""
-        ap = self.autopilot
+        ap = self.fc
         if ap.simulator:
             return None
         boot = ap.timesync.fc_boot_unix_s()
@@ -386,7 +364,7 @@ class Agent:
                       loop_turns=getattr(self.host.loop, "turns", None),  # (the process's: ``host.CountingLoop``)
                       stalls={"count": self.stalls.count, "longest_s": round(self.stalls.longest_s, 2)},
                       state_write_failures=self.store.failed_writes, gcs_shed=self.gcs.shed_counts(),
-                      **self.autopilot.timesync.report())
+                      **self.fc.timesync.report())
         return report
 
     # -- faults -------------------------------------------------------------------------------------
@@ -394,7 +372,7 @@ class Agent:
     def watch_fc(self) -> None:
         """Once a second: a flight controller set up and silent for FC_SILENT_S (while this process
         ran: ``Stalls``) is lost; a lost one heard again is taken back."""
-        fc, heard = self.autopilot, self.fc_heard_s
+        fc, heard = self.fc, self.fc_heard_s
         now = time.monotonic()
         self.stalls.look(now)
         if heard is None:
@@ -436,7 +414,7 @@ class Agent:
         """The flight controller is heard again: it may be another one (a reboot, a simulator
         started again), so it is set up anew (parameters, streams, clock), then the mission
         resumes as after a restart of the companion."""
-        fc = self.autopilot
+        fc = self.fc
         try:
             self.say("flight controller heard again: setting it up anew")
             fc.forget()
@@ -472,7 +450,7 @@ class Agent:
                     other = f"{plan:08x}" if isinstance(plan, int) else repr(plan)
                     self.say(f"agent {j} flies another plan ({other}, not {self.plans.mission.plan_id:08x}): its "
                              f"estimates are dropped and it counts as absent", mavlink.MAV_SEVERITY_WARNING)
-        step, told = self.autopilot.clock.refused_step_us, self._told_clock_step
+        step, told = self.fc.clock.refused_step_us, self._told_clock_step
         if step is not None and (told is None or abs(step - told) > OFFSET_STEP_US):
             self._told_clock_step = step
             self.say(f"the flight controller's Unix time stepped {step / 1e6:+.3f} s in flight: not taken, plan time "
@@ -480,13 +458,13 @@ class Agent:
 
     def link_counters(self) -> dict:
         """Each MAVLink link's counters (what it took, dropped and refused, by reason)."""
-        return {lk.name: dict(lk.counters) for lk in (self.autopilot.link, self.gcs.link)}
+        return {lk.name: dict(lk.counters) for lk in (self.fc.link, self.gcs.link)}
 
     def stats(self) -> dict:
         out = {"agent": self.id, "phase": self.flight.phase.value, "loop": self.health.summary(),
                "tick_errors": self.errors, "state_write_failures": self.store.failed_writes,
-               "links": self.link_counters(), "fc_clock": self.autopilot.timesync.report(),
-               "missions": dict(self.plan_server.counters), "telemetry": dict(self.autopilot.assembler.counters)}
+               "links": self.link_counters(), "fc_clock": self.fc.timesync.report(),
+               "missions": dict(self.plan_server.counters), "telemetry": dict(self.fc.assembler.counters)}
         if self.bus is not None:
             out["zenoh"] = self.bus.counts()
         return out

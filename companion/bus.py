@@ -62,7 +62,8 @@ import zenoh
 from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of_key, alive_key, decode_header,
                                      decode_xi, encode_estimate, estimate_key, health_key, status_key)
 
-DEFAULT_ZENOH_BASE_PORT = 17447
+from .options import DEFAULT_ZENOH_BASE_PORT
+
 COPY_EVERY = 2  # every how many best-effort estimates (UDP) one also goes reliably (TCP)
 INBOX_SIZE = 256  # estimates (or statuses) handed over and not yet read (the newest kept)
 ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 import signal
 import sys
@@ -15,65 +16,69 @@ from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.graph import GraphError
 from triswarm.protocol.plan import PlanError
 
+from .options import BY_NAME, OPTIONS, PYTHON_TYPE, CompanionOptions
+
 app = typer.Typer(add_completion=False, rich_markup_mode=None)
 
 
-@app.command()
-def companion(
-    ctx: typer.Context,
-    id: Annotated[Optional[list[int]], typer.Option("--id", metavar="N", help="This drone's number in the swarm (its MAVLink system "
-                                                                 "id). Repeat, with --fc and --gcs for each, to fly "
-                                                                 "several simulated drones in this process.")] = None,
-    fc: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Flight-controller link (pymavlink connection string, or a serial "
-                                                         "port DEVICE:BAUD).")] = None,
-    gcs: Annotated[Optional[list[str]], typer.Option(metavar="URL", help="Ground-station link (pymavlink connection string).")] = None,
-    plan: Annotated[Optional[Path], typer.Argument(metavar="PLAN", show_default=False,
-                                                   help="A plan file (TOML) to load at start; without one, the "
-                                                        "ground station uploads it (triswarm plan upload).")] = None,
-    plan_option: Annotated[Optional[Path], typer.Option("--plan", hidden=True,
-                                                        help="Deprecated spelling of PLAN.")] = None,
-    autostart: Annotated[bool, typer.Option(help="Arm, take off and start the plan at the common start time.")] = False,
-    start_at: Annotated[Optional[float], typer.Option(help="Common start time [s since the Unix epoch] "
-                                                           "(default with --autostart: the next multiple of 10 s, 5 s ahead).")] = None,
-    zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh configuration file (JSON5): client or router "
-                                                              "modes across machines.")] = None,
-    zenoh_listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on (repeat).")] = None,
-    zenoh_connect: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to connect to (repeat).")] = None,
-    zenoh_mode: Annotated[str, typer.Option(help="Zenoh mode with --zenoh-listen/--zenoh-connect: peer or client.")] = "peer",
-    zenoh_base_port: Annotated[int, typer.Option(help="Default peers on one machine: agent i listens on TCP port base+i.")] = 17447,
-    rate_hz: Annotated[float, typer.Option(help="Control rate [Hz] (the telemetry rate it asks for).")] = 200.0,
-    gcs_frames_per_s: Annotated[float, typer.Option(help="Frames a second one ground station may send beyond a burst "
-                                                         "of twice that; beyond: dropped, counted and said once "
-                                                         "(0: no limit).")] = 100.0,
-    state_dir: Annotated[Optional[Path], typer.Option(help="Keep the plan and mission here, to resume after a restart "
-                                                           "({id} in the path: the drone's number).")] = None,
-    swarm: Annotated[Optional[str], typer.Option(help="Swarm name in the Zenoh key space (default: the plan's name).")] = None,
-    stats: Annotated[Optional[Path], typer.Option(help="Write loop statistics here at exit (JSON; {id} in the path: the "
-                                                       "drone's number).")] = None,
-    signing_key: Annotated[Optional[Path], typer.Option(help="MAVLink 2 signing key file (32 bytes, or 64 hex digits): "
-                                                             "sign the ground-station link and refuse its unsigned "
-                                                             "commands, plans and parameter changes.")] = None,
-    verbose: Annotated[bool, typer.Option(help="Log more.")] = False,
-    config: Annotated[Optional[Path], typer.Option(help="Per-drone configuration (TOML, keys named like these options; "
-                                                        "see deploy/drone.example.toml). Options given here win.")] = None,
-    check: Annotated[bool, typer.Option(help="With --config: check the configuration, the flight controller's port, "
-                                             "Zenoh, the signing key and the state folder, one line each; exit 0 or 1.")] = False,
-) -> None:
+def _cli_signature() -> inspect.Signature:
+    """The command's parameters: every ``options.OPTIONS`` entry (the per-agent ones repeatable, the
+    plan a positional argument), and the command line's own --config and --check."""
+    import typer
+
+    params = [inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)]
+    for o in OPTIONS:
+        kind = PYTHON_TYPE[o.kind]
+        if o.name == "plan":
+            info = typer.Argument(metavar=o.metavar, show_default=False, help=o.help)
+            annotation = Optional[kind]
+        elif o.per_agent:
+            info = typer.Option(metavar=o.metavar, help=o.help)
+            annotation = Optional[list[kind]]
+        elif o.kind == "strlist":
+            info = typer.Option(help=o.help)
+            annotation = Optional[list[str]]
+        else:
+            info = typer.Option(metavar=o.metavar, help=o.help)
+            annotation = kind if o.default is not None else Optional[kind]
+        default = None if o.per_agent or o.kind == "strlist" else o.default
+        params.append(inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=default,
+                                        annotation=Annotated[annotation, info]))
+        if o.name == "plan":
+            params.append(inspect.Parameter("plan_option", inspect.Parameter.KEYWORD_ONLY, default=None,
+                                            annotation=Annotated[Optional[Path], typer.Option(
+                                                "--plan", hidden=True, help="Deprecated spelling of PLAN.")]))
+    params.append(inspect.Parameter("config", inspect.Parameter.KEYWORD_ONLY, default=None, annotation=Annotated[
+        Optional[Path], typer.Option(help="Per-drone configuration (TOML, keys named like these options; see "
+                                          "deploy/drone.example.toml). Options given here win.")]))
+    params.append(inspect.Parameter("check", inspect.Parameter.KEYWORD_ONLY, default=False, annotation=Annotated[
+        bool, typer.Option(help="With --config: check the configuration, the flight controller's port, Zenoh, the "
+                                "signing key and the state folder, one line each; exit 0 or 1.")]))
+    return inspect.Signature(params)
+
+
+def companion(ctx, **given_params) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
+    import typer
+
     from .config import ConfigError, explicit_options, link_url, resolve_options, run_checks
 
+    id, fc, gcs = given_params["id"], given_params["fc"], given_params["gcs"]
+    config, check, plan_option = given_params.pop("config"), given_params.pop("check"), given_params.pop("plan_option")
     agents = [(i, f, g) for i, f, g in zip(id or [], fc or [], gcs or [])]
-    params = dict(ctx.params, id=(id or [None])[0], fc=(fc or [None])[0], gcs=(gcs or [None])[0])
-    given = explicit_options(ctx)
-    del params["plan_option"]
+    params = dict(given_params, id=(id or [None])[0], fc=(fc or [None])[0], gcs=(gcs or [None])[0])
+    for o in OPTIONS:  # (a repeated option's default is no value: the dataclass's is an empty tuple)
+        if o.kind == "strlist":
+            params[o.name] = tuple(params[o.name] or ())
+    given = explicit_options(ctx) - {"config", "check", "plan_option"}
     if plan_option is not None:  # the old spelling, kept for one release
         print("triswarm-companion: warning: --plan FILE is deprecated and goes in the next release: give the plan "
               "as the positional PLAN", file=sys.stderr)
-        if plan is not None:
+        if params["plan"] is not None:
             print("triswarm-companion: error: give the plan once: PLAN or --plan, not both", file=sys.stderr)
             raise typer.Exit(code=2)
         params["plan"] = plan_option
-        given = (given - {"plan_option"}) | {"plan"}
+        given |= {"plan"}
     if check:
         raise typer.Exit(code=run_checks(config, params, given))
     try:
@@ -84,32 +89,23 @@ def companion(
                 raise ConfigError("--config describes one drone: give several drones their options on the command line")
             if len({i for i, _, _ in agents}) != len(agents):
                 raise ConfigError("every --id must be a different drone")
-        o = resolve_options(config, params, given)
+        values = resolve_options(config, params, given)
         agents = [(i, link_url(f, "fc"), link_url(g, "gcs")) for i, f, g in agents[1:]]
         for i, _, _ in agents:
-            if not 1 <= i <= 255:
-                raise ConfigError(f"--id must be a MAVLink system id between 1 and 255, got {i}")
+            problem = BY_NAME["id"].check(i)
+            if problem:
+                raise ConfigError(problem)
     except ConfigError as exc:  # what the operator wrote (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
-    id, fc, gcs, plan, autostart, start_at = o["id"], o["fc"], o["gcs"], o["plan"], o["autostart"], o["start_at"]
-    zenoh_config, zenoh_listen, zenoh_connect = o["zenoh_config"], o["zenoh_listen"], o["zenoh_connect"]
-    zenoh_mode, zenoh_base_port, rate_hz, state_dir = o["zenoh_mode"], o["zenoh_base_port"], o["rate_hz"], o["state_dir"]
-    swarm, stats, signing_key, verbose = o["swarm"], o["stats"], o["signing_key"], o["verbose"]
-    gcs_frames_per_s = o["gcs_frames_per_s"]
-    from .agent import CompanionOptions, StartupError
+    from .agent import StartupError
     from .host import CountingLoop, agent_options, run_agents
 
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
+    logging.basicConfig(level=logging.DEBUG if values["verbose"] else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(message)s")
     try:
-        opts = CompanionOptions(agent=id, fc_url=fc, gcs_url=gcs, plan_path=plan, autostart=autostart,
-                                start_at_unix_s=start_at, zenoh_config=zenoh_config,
-                                zenoh_listen=tuple(zenoh_listen or ()), zenoh_connect=tuple(zenoh_connect or ()),
-                                zenoh_mode=zenoh_mode, zenoh_base_port=zenoh_base_port, rate_hz=rate_hz,
-                                state_dir=state_dir, swarm=swarm, stats_path=stats, signing_key_path=signing_key,
-                                gcs_frames_per_s=gcs_frames_per_s)
-        every = agent_options(opts, [(id, fc, gcs), *agents])
+        opts = CompanionOptions(**{o.name: values[o.name] for o in OPTIONS})
+        every = agent_options(opts, [(opts.id, opts.fc, opts.gcs), *agents])
 
         async def main() -> list[dict]:
             stop = asyncio.Event()
@@ -124,12 +120,17 @@ def companion(
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
     for o, result in zip(every, results):
-        if o.stats_path is not None:
+        if o.stats is not None:
             try:
-                write_stats(o.stats_path, result)
+                write_stats(o.stats, result)
             except OSError as exc:
-                print(f"triswarm-companion: error: cannot write the stats to {o.stats_path}: {exc.strerror}", file=sys.stderr)
+                print(f"triswarm-companion: error: cannot write the stats to {o.stats}: {exc.strerror}", file=sys.stderr)
                 raise typer.Exit(code=2) from None
+
+
+companion.__signature__ = _cli_signature()
+companion.__annotations__ = {p.name: p.annotation for p in companion.__signature__.parameters.values()}
+app.command()(companion)
 
 
 def write_stats(path: Path, stats: dict) -> None:

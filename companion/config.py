@@ -1,7 +1,7 @@
 """The per-drone configuration of ``triswarm-companion`` (``--config FILE``) and its ``--check``.
 
-The file is TOML; its keys are the command-line options' names (``deploy/drone.example.toml``
-shows them all)::
+The file is TOML; its keys are the command-line options' names (``options.OPTIONS``;
+``deploy/drone.example.toml`` shows them all)::
 
     id = 3
     fc = "/dev/ttyAMA0:921600"          # serial DEVICE:BAUD (or DEVICE,BAUD), or a pymavlink URL
@@ -25,7 +25,6 @@ Nothing is written, and nothing is sent to the flight controller.
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import stat
@@ -36,30 +35,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .options import BY_FILE_KEY, OPTIONS, REQUIRED
+
 ZENOH_CHECK_TIMEOUT_S = 3.0
 
-# key in the file -> (option name, kind); [zenoh] keys are prefixed "zenoh."
-_KEYS: dict[str, tuple[str, str]] = {
-    "id": ("id", "int"),
-    "fc": ("fc", "str"),
-    "gcs": ("gcs", "str"),
-    "plan": ("plan", "path"),
-    "autostart": ("autostart", "bool"),
-    "start_at": ("start_at", "float"),
-    "rate_hz": ("rate_hz", "float"),
-    "gcs_frames_per_s": ("gcs_frames_per_s", "float"),
-    "state_dir": ("state_dir", "path"),
-    "swarm": ("swarm", "str"),
-    "stats": ("stats", "path"),
-    "signing_key": ("signing_key", "path"),
-    "verbose": ("verbose", "bool"),
-    "zenoh.config": ("zenoh_config", "path"),
-    "zenoh.listen": ("zenoh_listen", "strlist"),
-    "zenoh.connect": ("zenoh_connect", "strlist"),
-    "zenoh.mode": ("zenoh_mode", "str"),
-    "zenoh.base_port": ("zenoh_base_port", "int"),
-}
-REQUIRED = ("id", "fc", "gcs")
 _URL_PREFIXES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:")
 SERIAL_PREFIX = "serial://"  # MAVSDK's form of a serial port
 
@@ -93,11 +72,11 @@ def load_config(path: Path) -> dict[str, Any]:
             flat[key] = value
     out: dict[str, Any] = {}
     for key, value in flat.items():
-        if key not in _KEYS:
-            known = ", ".join(sorted(_KEYS))
+        if key not in BY_FILE_KEY:
+            known = ", ".join(sorted(BY_FILE_KEY))
             raise ConfigError(f"{path}: unknown key {key!r} (known: {known})")
-        name, kind = _KEYS[key]
-        out[name] = _convert(path, key, kind, value)
+        opt = BY_FILE_KEY[key]
+        out[opt.name] = _convert(path, key, opt.kind, value)
     return out
 
 
@@ -157,16 +136,12 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
         if values.get(name) is None:
             where = f" or set {name} in {config_path}" if config_path is not None else " (or use --config FILE)"
             raise ConfigError(f"--{name} is missing: give it{where}")
-    if not 1 <= values["id"] <= 255:
-        raise ConfigError(f"--id must be a MAVLink system id between 1 and 255, got {values['id']}")
-    if not (math.isfinite(values["rate_hz"]) and 1.0 <= values["rate_hz"] <= 2000.0):
-        raise ConfigError(f"--rate-hz must be between 1 and 2000, got {values['rate_hz']}")
-    if not (math.isfinite(values.get("gcs_frames_per_s", 100.0)) and values.get("gcs_frames_per_s", 100.0) >= 0):
-        raise ConfigError(f"--gcs-frames-per-s must be a non-negative number (0: no limit), got {values['gcs_frames_per_s']}")
-    if values.get("start_at") is not None and not math.isfinite(values["start_at"]):
-        raise ConfigError(f"--start-at must be a finite number of seconds, got {values['start_at']}")
-    if values.get("zenoh_mode") not in ("peer", "client"):
-        raise ConfigError(f"--zenoh-mode must be peer or client, got {values.get('zenoh_mode')!r}")
+    for opt in OPTIONS:
+        value = values.get(opt.name, opt.default)
+        values[opt.name] = value
+        problem = None if value is None or opt.check is None else opt.check(value)
+        if problem:
+            raise ConfigError(problem)
     values["fc"] = link_url(values["fc"], "fc")
     values["gcs"] = link_url(values["gcs"], "gcs")
     return values

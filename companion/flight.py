@@ -26,7 +26,7 @@ import numpy as np
 from triswarm.protocol import model
 from triswarm.protocol.codec import AgentStatus
 from triswarm.protocol.formation import Formation, Kinematics, QuinticTransfer, RelativeTo, Rejoin, Row, Rows, rejoin_duration
-from triswarm.protocol.mavlink import CustomMode, mavlink, mode_name
+from triswarm.protocol.mavlink import mavlink
 
 ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
@@ -48,14 +48,14 @@ PHASE_STATUS = {Phase.IDLE: AgentStatus.IDLE, Phase.SCHEDULED: AgentStatus.IDLE,
 
 
 class Flight:
-    """``agent``: the ``Agent`` whose flight this is (its autopilot, plans, bus, controller row,
+    """``agent``: the ``Agent`` whose flight this is (its flight controller, plans, bus, controller row,
     parameters and voice)."""
 
     def __init__(self, agent) -> None:
         self.a = agent
         self.phase = Phase.IDLE
         self.reason = ""
-        self.since = agent.autopilot.now_unix()
+        self.since = agent.fc.now_unix()
         """Why and since when [Unix s, the flight controller's clock] the phase is what it is."""
         self.flying_since = -math.inf
         self.tracking: Formation | None = None
@@ -78,11 +78,11 @@ class Flight:
     def set_phase(self, phase: Phase, reason: str) -> None:
         if phase == self.phase:
             return
-        now = self.a.autopilot.now_unix()
+        now = self.a.fc.now_unix()
         if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
             self.flying_since = now
         self.phase, self.reason, self.since = phase, reason, now
-        self.a.autopilot.clock.steady = self.in_flight  # (in flight, plan time runs on the boot clock)
+        self.a.fc.clock.steady = self.in_flight  # (in flight, plan time runs on the boot clock)
         self.a.publish_status()
         if phase == Phase.HOLDING:
             self.a.say(f"holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
@@ -114,7 +114,7 @@ class Flight:
         return task
 
     async def _start_when_due(self) -> None:
-        a, fc, m = self.a, self.a.autopilot, self.a.plans.mission
+        a, fc, m = self.a, self.a.fc, self.a.plans.mission
         try:
             while not (fc.clock.known and fc.ready):  # the flight controller's set-up is still running
                 await asyncio.sleep(0.05)
@@ -130,12 +130,10 @@ class Flight:
                 a.say("start time reached; waiting to be armed")
                 while not fc.armed:
                     await asyncio.sleep(0.05)
-            if fc.mode != CustomMode.EXTERNAL:  # e.g. hovering after the operator's takeoff
-                result = await fc.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                                          CustomMode.EXTERNAL)
-                if result != mavlink.MAV_RESULT_ACCEPTED:
-                    raise RuntimeError(f"the flight controller refused external control ({result})")
-                fc.mode = CustomMode.EXTERNAL
+            if fc.landed:  # (some flight controllers take off themselves before they hand over)
+                await fc.launch(a.plans.plan.entry.climb_m, a.say)
+            if not fc.in_control:  # e.g. hovering after the operator's takeoff
+                await fc.take_control()
             while self.state_now() is None:  # (a position to start from)
                 await asyncio.sleep(0.05)
             self.begin_entry(max(0.0, a.plan_time(fc.last_sample.boot_us)))
@@ -147,7 +145,7 @@ class Flight:
             a.say(f"plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
     async def arm(self) -> None:
-        result = await self.a.autopilot.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        result = await self.a.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         if result != mavlink.MAV_RESULT_ACCEPTED:
             self.a.say(f"the flight controller refused to arm ({result})")
             raise RuntimeError("arming refused")
@@ -155,7 +153,7 @@ class Flight:
     def state_now(self) -> np.ndarray | None:
         """The measured state x of (28) from the newest sample, or None before one with a position
         came (body rates that did not come count as zero)."""
-        s = self.a.autopilot.last_sample
+        s = self.a.fc.last_sample
         if s is None or not all(math.isfinite(c) for c in s.position_e_m + s.velocity_e_m_s):
             return None
         eta = np.array(s.eta_rad)
@@ -179,7 +177,7 @@ class Flight:
         """After a restart (of the companion, or of the flight controller): join the formation again
         from wherever the vehicle is; a plan whose start is still ahead on the flight controller's
         clock is scheduled again."""
-        a, fc = self.a, self.a.autopilot
+        a, fc = self.a, self.a.fc
         if a.plans.mission.start_unix_s > fc.now_unix():
             self.schedule()
             return
@@ -188,6 +186,9 @@ class Flight:
         if not fc.armed or fc.landed:
             if not fc.armed:
                 await self.arm()
+            await fc.launch(a.plans.plan.entry.climb_m, a.say)
+            if not fc.in_control:
+                await fc.take_control()
             self.begin_entry(a.plan_time(fc.last_sample.boot_us) + 1.0)
             return
         x = self.state_now()
@@ -200,13 +201,13 @@ class Flight:
     def check_release(self) -> None:
         """The flight controller took the vehicle back (the operator's land or hold, a disarm):
         this flight of the plan is over. (A failsafe hold, which commands win back, is not.)"""
-        fc = self.a.autopilot
+        fc = self.a.fc
         if not self.in_flight:
             return
         if not fc.armed:
             self.release("disarmed")
-        elif fc.mode != CustomMode.EXTERNAL and not fc.critical:
-            self.release(f"the flight controller is in {mode_name(fc.mode)}")
+        elif (reason := fc.released()) is not None:
+            self.release(reason)
 
     def release(self, reason: str) -> None:
         self.a.plans.mission.phase = "done"
@@ -252,7 +253,7 @@ class Flight:
     def presence(self) -> tuple[bool, ...]:
         """Which agents count now (``usable``), every one. Of the agents this one does not listen
         to, only liveliness, status and the start decide: that part is kept until one changes."""
-        starting = self.a.autopilot.now_unix() - self.flying_since < START_GRACE_S
+        starting = self.a.fc.now_unix() - self.flying_since < START_GRACE_S
         key = (self.a.bus.changes, starting)
         if self._presence_base is None or self._presence_base[0] != key:
             n = self.a.plans.plan.n_agents
@@ -284,7 +285,7 @@ class Flight:
         alive = j in bus.alive
         if not alive and (j not in a.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
-        starting = a.autopilot.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
+        starting = a.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
         plans = a.plans_on_bus
         status = bus.status_of(j, plans)
         if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):

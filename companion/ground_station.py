@@ -132,16 +132,16 @@ class GroundStation:
     # -- routing ----------------------------------------------------------------------------------
 
     def from_fc(self, msgs: list, t_rx: float) -> None:
-        """Frames from the flight-controller link: this agent's autopilot's to its face, and each
+        """Frames from the flight-controller link: this agent's flight controller's to its face, and each
         to where it is going."""
-        a, fc_link = self.a, self.a.autopilot.link
+        a, fc_link = self.a, self.a.fc.link
         links = (fc_link, self.link)
         for msg in msgs:
             self.router.learn(fc_link, msg)
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if src == (a.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
                 a.fc_heard_s = time.monotonic()  # (the agent's watchdog: a lost flight controller)
-                a.autopilot.take(msg, t_rx)
+                a.fc.take(msg, t_rx)
             for dest in self.router.destinations(fc_link, msg, links):
                 if dest is self.link and not self._rate_ok(msg):
                     continue
@@ -151,7 +151,7 @@ class GroundStation:
 
     def from_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
         """Frames from the ground-station link: each sender's within its bucket, the rest shed."""
-        fc_link = self.a.autopilot.link
+        fc_link = self.a.fc.link
         links = (fc_link, self.link)
         now = time.monotonic()
         for msg in msgs:
@@ -212,7 +212,7 @@ class GroundStation:
         name = list(values)[k]
         if name == "PLAN_T_S":  # the plan time now, for commands timed in it (NaN: no plan in force)
             start = self.a.plans.start_unix_s
-            values[name] = math.nan if start is None else self.a.autopilot.now_unix() - start
+            values[name] = math.nan if start is None else self.a.fc.now_unix() - start
         return mavlink.MAVLink_param_value_message(name.encode(), float(values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
                                                    len(values), k)
 

@@ -19,7 +19,8 @@ import selectors
 from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import PlanError, plan_from_dict
 
-from .agent import Agent, CompanionOptions
+from .agent import Agent
+from .options import CompanionOptions
 from .bus import Bus, close_session, copies_backup, default_config, open_session, peer_config, tune
 from .flight import SharedEntry
 from .loop import ControlLoop
@@ -47,8 +48,8 @@ def agent_options(opts: CompanionOptions, agents: list[tuple[int, str, str]]) ->
     def own(path, agent):
         return None if path is None else type(path)(str(path).replace("{id}", str(agent)))
 
-    return [dataclasses.replace(opts, agent=agent, fc_url=fc_url, gcs_url=gcs_url, state_dir=own(opts.state_dir, agent),
-                                stats_path=own(opts.stats_path, agent)) for agent, fc_url, gcs_url in agents]
+    return [dataclasses.replace(opts, id=agent, fc=fc_url, gcs=gcs_url, state_dir=own(opts.state_dir, agent),
+                                stats=own(opts.stats, agent)) for agent, fc_url, gcs_url in agents]
 
 
 class _CountingSelector(selectors.DefaultSelector):
@@ -90,7 +91,7 @@ class Host:
         bus = self._buses.get(swarm)
         if bus is None:
             if self._session is None:
-                agents = frozenset(o.agent for o in self.options)
+                agents = frozenset(o.id for o in self.options)
                 config = zenoh_config(self.options[0], agents, n_agents)
                 self._copies = copies_backup(config)
                 self._session = open_session(config)

@@ -21,6 +21,13 @@ parsed across reads. Nothing on it blocks the loop: a frame the port's output bu
 whole is dropped and counted (``drop_tx_full``; the line is over its budget). A port that fails
 (a USB flight controller unplugged: readable, but no data; or a read or write error) is closed
 once, said once through ``on_event``, and opened again every REOPEN_EVERY_S until it is back.
+
+A TCP link (``tcp:HOST:PORT``: a flight controller's own port, as ArduPilot's SITL offers) is a
+byte stream too, read and written on its socket without blocking (pymavlink's own would wait and
+retry on the loop): a frame the socket cannot take whole waits, and beyond TCP_TX_QUEUE_BYTES
+waiting a frame is dropped and counted (``drop_tx_full``). The peer closing the connection (a
+flight controller that restarted) is a link lost, as a serial port's: connected again every
+REOPEN_EVERY_S (one try each) until it is back.
 """
 
 from __future__ import annotations
@@ -52,6 +59,8 @@ _DROPS = struct.Struct("@I")
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_DROPS.size)
 REOPEN_EVERY_S = 1.0
 """A serial port that failed is tried again this often [s, wall]."""
+TCP_TX_QUEUE_BYTES = 65536
+"""Bytes a TCP link keeps for a socket that cannot take them yet; a frame beyond is dropped."""
 SERIAL_TX_QUEUE_BYTES = 4096
 """A frame that would queue more than this on a serial port is dropped (at 921600 baud, 44 ms of
 line; the loop sends a command every 5 ms)."""
@@ -75,6 +84,8 @@ class MavLink:
         """Told, in one line, that a serial port failed and that it is back."""
         self._datagrams = False
         self._serial = False
+        self._tcp = False
+        self._tx_pending = b""
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reopen: asyncio.TimerHandle | None = None
         self._down = False
@@ -90,13 +101,18 @@ class MavLink:
 
     def _connect(self) -> None:
         try:
-            self.conn = mavutil.mavlink_connection(self.url, source_system=self.codec.srcSystem,
-                                                   source_component=self.codec.srcComponent,
-                                                   udp_timeout=self.client_timeout_s)
+            if self.url.startswith("tcp:"):
+                self.conn = TcpConnection.open(self.url)
+            else:
+                self.conn = mavutil.mavlink_connection(self.url, source_system=self.codec.srcSystem,
+                                                       source_component=self.codec.srcComponent,
+                                                       udp_timeout=self.client_timeout_s)
         except (OSError, ValueError) as exc:  # (pyserial's SerialException is an OSError)
             raise OSError(f"cannot open MAVLink link {self.name} at {self.url}: {exc}") from None
         self._datagrams = isinstance(self.conn, mavutil.mavudp)
         self._serial = isinstance(self.conn, mavutil.mavserial)
+        self._tcp = isinstance(self.conn, TcpConnection)
+        self._tx_pending = b""
         if self._datagrams:
             for option in (SO_TIMESTAMPNS, SO_RXQ_OVFL):
                 try:
@@ -130,10 +146,15 @@ class MavLink:
             if self.conn is None:  # (lost while what was read was handled)
                 return
             try:
-                data, t_rx = self._recv_datagram() if self._datagrams else (self.conn.recv(MAX_DATAGRAM), time.time())
+                if self._datagrams:
+                    data, t_rx = self._recv_datagram()
+                elif self._tcp:
+                    data, t_rx = self._recv_stream()
+                else:
+                    data, t_rx = self.conn.recv(MAX_DATAGRAM), time.time()
             except OSError as exc:
                 self.counters["read_errors"] += 1
-                if self._serial:
+                if self._serial or self._tcp:
                     self._lost(exc)
                 return
             if data is None:  # (nothing more waiting)
@@ -190,6 +211,16 @@ class MavLink:
             conn.clients_last_alive[addr] = t_rx
         return data, t_rx
 
+    def _recv_stream(self) -> tuple[bytes | None, float]:
+        """What the TCP socket holds (None: nothing now); ConnectionError when the peer closed it."""
+        try:
+            data = self.conn.port.recv(MAX_DATAGRAM)
+        except (BlockingIOError, InterruptedError):
+            return None, 0.0
+        if not data:
+            raise ConnectionError("closed by the peer")
+        return data, time.time()
+
     def send(self, msg) -> None:
         """Pack a pymavlink message object as this process (sysid/compid of the link) and send it."""
         self.write(msg.pack(self.codec))
@@ -201,6 +232,9 @@ class MavLink:
             return
         if self._serial:
             self._write_serial(data)
+            return
+        if self._tcp:
+            self._write_stream(data)
             return
         try:
             self.conn.write(data)
@@ -230,6 +264,24 @@ class MavLink:
         if n < len(data):
             self.counters["tx_short"] += 1
 
+    def _write_stream(self, data: bytes) -> None:
+        """To the TCP socket without waiting: what it cannot take now goes first next time."""
+        if len(self._tx_pending) + len(data) > TCP_TX_QUEUE_BYTES:
+            self.counters["drop_tx_full"] += 1
+            data = b""
+        pending = self._tx_pending + data
+        try:
+            n = self.conn.port.send(pending) if pending else 0
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError as exc:
+            self.counters["write_errors"] += 1
+            self._lost(exc)
+            return
+        self._tx_pending = pending[n:]
+        if data:
+            self.counters["tx"] += 1
+
     def _queued(self) -> int:
         """Bytes waiting in the port's output buffer (0 where the driver does not say)."""
         try:
@@ -238,7 +290,8 @@ class MavLink:
             return 0
 
     def _lost(self, exc: OSError) -> None:
-        """The serial port failed: close it, say so once, try it again every REOPEN_EVERY_S."""
+        """The serial port failed (or the TCP connection ended): close it, say so once, try it again
+        every REOPEN_EVERY_S."""
         self.counters["lost"] += 1
         conn, self.conn = self.conn, None
         try:
@@ -265,6 +318,30 @@ class MavLink:
             self._reopen = self._loop.call_later(REOPEN_EVERY_S, self._try_reopen)
             return
         self.counters["reopened"] += 1
+
+
+class TcpConnection:
+    """A MAVLink link's TCP connection (``tcp:HOST:PORT``), opened in one try without blocking
+    for long: the socket (``port``) and its descriptor (``fd``)."""
+
+    CONNECT_TIMEOUT_S = 1.0
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.port = sock
+        self.fd = sock.fileno()
+
+    @classmethod
+    def open(cls, url: str) -> "TcpConnection":
+        host, sep, port = url.removeprefix("tcp:").rpartition(":")
+        if not sep or not port.isdigit():
+            raise ValueError("expected tcp:HOST:PORT")
+        sock = socket.create_connection((host, int(port)), timeout=cls.CONNECT_TIMEOUT_S)
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return cls(sock)
+
+    def close(self) -> None:
+        self.port.close()
 
 
 class Router:

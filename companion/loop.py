@@ -31,7 +31,6 @@ import numpy as np
 
 from triswarm.protocol.agent import no_leader, pinned_input, protocol_rows
 from triswarm.protocol.codec import AgentStatus
-from triswarm.protocol.mavlink import CustomMode
 from triswarm.protocol.stall import Stalls
 
 from .flight import Phase
@@ -94,7 +93,7 @@ class ControlLoop:
         is acted on at once, before what it woke runs, whichever agent's link happened to be read
         first: what a tick sees at a given instant must not depend on the order of the reads (two
         lockstep runs give the same flight)."""
-        if agent.autopilot.take_woke():
+        if agent.fc.take_woke():
             self._due.pop(agent, None)
             self._run([agent])
             return
@@ -127,7 +126,7 @@ class ControlLoop:
             s = self._take(a)
             if s is None or a.clock_broke(s):  # (a broken clock: the agent is lost, the sample not flown)
                 continue
-            if a.flight.in_flight and a.autopilot.ready:
+            if a.flight.in_flight and a.fc.ready:
                 ticks.append(Tick(a, s))
             else:
                 self._idle(a, s)
@@ -139,13 +138,13 @@ class ControlLoop:
             if earlier:  # (agents of this process waiting for those that published now)
                 self._check_waiting(earlier)
         for a in agents:
-            a.autopilot.settle(a in self.waiting)
+            a.fc.settle(a in self.waiting)
         self._arm_timer()
 
     def _take(self, a):
         """The newest sample of agent a; the older ones it did not act on (the loop fell behind)
         still update its estimate, as periods in which the flight controller kept the last command."""
-        backlog = a.autopilot.backlog
+        backlog = a.fc.backlog
         if not backlog:
             return None
         samples = list(backlog)
@@ -163,10 +162,11 @@ class ControlLoop:
         return samples[-1]
 
     def _idle(self, a, s) -> None:
-        """No plan flying: armed on the ground in EXTERNAL, the rotors idle (not the failsafe)."""
-        fc = a.autopilot
+        """No plan flying: armed on the ground in the companion's mode, the rotors idle (not the failsafe), where
+        the flight controller's kind wants that."""
+        fc = a.fc
         if (fc.ready and a.flight.phase in (Phase.IDLE, Phase.SCHEDULED) and fc.armed and fc.landed
-                and fc.mode == CustomMode.EXTERNAL):
+                and fc.in_control and fc.autopilot.COMMANDS_WHILE_IDLE):
             fc.actuate(s, *a.idle)
             a.health.tick(s.t_rx, time.time())
 
@@ -249,7 +249,7 @@ class ControlLoop:
                 a.tick_failed()
                 continue
             t.since_wall = now
-            t.lockstep = a.autopilot.answers.lockstep
+            t.lockstep = a.fc.answers.lockstep
             t.next_wall = now + (LOCKSTEP_RECHECK_S if t.lockstep else a.params.values["NB_WAIT_MS"] / 1000.0)
             if a.bus.ready(t.expected, t.t_p, 0.5 * a.dt_s, a.plans_on_bus):
                 ready.append(t)
@@ -276,7 +276,7 @@ class ControlLoop:
         if ready:
             self._finish(ready)
             for t in ready:
-                t.agent.autopilot.settle(False)
+                t.agent.fc.settle(False)
 
     def _set_waiting(self) -> None:
         for bus in self._buses:
@@ -315,7 +315,7 @@ class ControlLoop:
         if done:
             self._finish(done)
             for t in done:
-                t.agent.autopilot.settle(False)
+                t.agent.fc.settle(False)
         self._arm_timer()
 
     def _lockstep_recheck(self, t: Tick, now: float) -> bool:
@@ -407,10 +407,10 @@ class ControlLoop:
             for k, t in enumerate(group):
                 a, s = t.agent, t.sample
                 try:
-                    a.autopilot.actuate(s, act.omega_rad_s[k], act.alpha_rad[k])
+                    a.fc.actuate(s, act.omega_rad_s[k], act.alpha_rad[k])
                     now = time.time()
                     a.health.tick(s.t_rx, now)
-                    a.health.telemetry_age.add(now - a.autopilot.unix(s.boot_us))
+                    a.health.telemetry_age.add(now - a.fc.unix(s.boot_us))
                     if a.health.ticks % FORMATION_ERROR_EVERY == 0 and a.flight.phase == Phase.FLYING and t.xi is not None:
                         # (a tick of the formation, not of a hold: from its place now, its own reference)
                         err = t.xhat[9:12] - t.h[9:12] - t.x0[9:12]

@@ -19,7 +19,7 @@ than the newest of their stream (out of order) are dropped and counted; the same
 a flight controller that restarted: every stream starts again.
 
 Times are the flight controller's boot clock in microseconds (ms-stamped messages times 1000).
-No I/O: the autopilot face (``autopilot.py``) feeds it parsed messages, read here into the paper's
+No I/O: the flight-controller face (``flight_controller.py``) feeds it parsed messages, read here into the paper's
 frames (``attitude_of``, ``position_of``, ``gyro_of``).
 """
 

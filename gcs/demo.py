@@ -22,7 +22,8 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, Progress, TextColumn
 
-from triswarm.protocol.mavlink import COMP_AUTOPILOT, CustomMode, mavlink
+from triswarm.protocol.autopilots import launch_mode_command
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
 from .errors import UserError, console, err_console, require_positive, user_errors
@@ -30,9 +31,18 @@ from .link import GroundLink, LinkError
 from .plot_cmd import plot
 from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
 from .stack import Stack, StackError
-from .swarm_cmd import command_all, start_all, upload_all
+from .swarm_cmd import command_all, for_each, result_text, start_all, take_off_all, upload_all
 
 STARTUP_S = 120.0  # companions load numba kernels and open Zenoh; two busy cores can take a while
+ARM_READY_S = 120.0
+"""A flight controller refuses to arm until its pre-arm checks pass: ArduCopter's EKF3 takes 40 s
+of its clock from boot to a position estimate."""
+ARDUPILOT_RATE_HZ = 100.0
+"""The companions' rate with ArduPilot: what its script delivers to the outputs in full."""
+ARDUPILOT_TRUTH_BOUNDS = (0.10, 0.02)
+ARDUPILOT_TELEMETRY_BOUNDS = (0.25, 0.05)
+"""With ArduPilot's firmware the formation is judged on the plant's truth (the paper's bounds) and
+never worse than these in the firmware's own telemetry (its EKF's estimates)."""
 SENSOR_NOISE = (("NOISE_POS_M", 0.005), ("NOISE_VEL_MS", 0.01), ("NOISE_ATT_RAD", 0.001), ("NOISE_GYRO_RADS", 0.005))
 """The estimators' noise the demo's flight controllers report with (1 sigma; what an RTK-GNSS-aided
 EKF gives), in every message, the ground station's included."""
@@ -63,6 +73,25 @@ def _wait(stack: Stack, what: str, missing, timeout_s: float) -> None:
         time.sleep(0.1)
 
 
+def _until_accepted(stack: Stack, link: GroundLink, title: str, ids: list[int], command, timeout_s: float) -> None:
+    """``command(drone)`` -> (command, params) or None (nothing to do) for every drone, asked again of
+    those that refuse until ``timeout_s``: a flight controller refuses while its pre-arm checks fail
+    (an EKF still converging); then one sentence with the reason it gave."""
+    deadline = time.monotonic() + timeout_s
+    todo = [i for i in ids if command(i) is not None]
+    while todo:
+        outcomes = for_each(todo, lambda i: result_text(*link.command(i, COMP_AUTOPILOT, command(i)[0], list(command(i)[1]))))
+        todo = [i for i, (ok, _) in outcomes.items() if not ok]
+        if not todo:
+            break
+        if (stopped := stack.stopped()) is not None:
+            raise _fail(f"{title}: {stopped}")
+        if time.monotonic() > deadline:
+            raise _fail(f"{title} refused for {timeout_s:g} s: {({i: outcomes[i][1] for i in todo})}")
+        time.sleep(2.0)
+    console.print(f"{title}: [green]all drones[/]")
+
+
 def _which(ids: list[int], state: str) -> str:
     """"drones 2, 5 <state>", or "" for none."""
     return f"{'drone' if len(ids) == 1 else 'drones'} {', '.join(map(str, ids))} {state}" if ids else ""
@@ -83,6 +112,11 @@ def demo(
     fc_profile: Annotated[str, typer.Option(help="The flight controllers stream to the companions as this autopilot "
                                                  "does (sitl up --fc-profile): px4 (estimator instants, position at "
                                                  "100 Hz, up to 1.5 ms late), ardupilot or triswarm.")] = "px4",
+    autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated) or ardupilot "
+                                                "(ArduPilot's ArduCopter SITL firmware in the loop, in real time; "
+                                                "judged on the plant's truth and on the firmware's telemetry).")] = "triswarm",
+    firmware: Annotated[Optional[Path], typer.Option(envvar="TRISWARM_ARDUCOPTER",
+                                                     help="With --autopilot ardupilot: the ArduCopter SITL binary.")] = None,
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
@@ -92,6 +126,19 @@ def demo(
         if max_rtf is not None and not (lockstep and math.isfinite(max_rtf) and max_rtf > 0):
             raise UserError(f"--max-rtf must be a positive number and goes with --lockstep, got {max_rtf}"
                             + ("" if lockstep else " without --lockstep"))
+        if autopilot not in ("triswarm", "ardupilot"):
+            raise UserError(f"--autopilot must be triswarm or ardupilot, got {autopilot!r}")
+        ardupilot = autopilot == "ardupilot"
+        if ardupilot:
+            from triswarm.sitl.firmware import FirmwareError, find_firmware
+
+            if lockstep:
+                raise UserError("--lockstep is for triswarm's flight controllers: ArduPilot's firmware runs in real "
+                                "time (in lockstep with its plant)")
+            try:
+                firmware = find_firmware(firmware)
+            except FirmwareError as exc:
+                raise UserError(str(exc)) from None
         from triswarm.protocol.plan import plan_from_dict
 
         spec, label = read_plan_spec(plan_name)
@@ -109,17 +156,29 @@ def demo(
         raise typer.Exit(code=2) from None
     n = plan.n_agents
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
-    console.print(f"flight controllers streaming as {fc_profile}, "
-                  + ("with sensor noise (1 sigma: " + ", ".join(f"{k}={v:g}" for k, v in SENSOR_NOISE) + ")" if noise
-                     else "without sensor noise")
-                  + f"; it passes if every drone stays within 0.10 m and 0.02 rad of its place over [25 s, "
-                  f"{duration_s:g} s]", soft_wrap=True)
+    if ardupilot:
+        console.print(f"ArduPilot's firmware ({firmware}) flying triswarm's plant, its EKF3's estimates what the "
+                      f"companions fly on; it passes if every drone stays within {ARDUPILOT_TRUTH_BOUNDS[0]:g} m and "
+                      f"{ARDUPILOT_TRUTH_BOUNDS[1]:g} rad of its place over [25 s, {duration_s:g} s] in truth, and "
+                      f"{ARDUPILOT_TELEMETRY_BOUNDS[0]:g} m and {ARDUPILOT_TELEMETRY_BOUNDS[1]:g} rad in its "
+                      "telemetry", soft_wrap=True)
+    else:
+        console.print(f"flight controllers streaming as {fc_profile}, "
+                      + ("with sensor noise (1 sigma: " + ", ".join(f"{k}={v:g}" for k, v in SENSOR_NOISE) + ")" if noise
+                         else "without sensor noise")
+                      + f"; it passes if every drone stays within 0.10 m and 0.02 rad of its place over [25 s, "
+                      f"{duration_s:g} s]", soft_wrap=True)
     with contextlib.ExitStack() as running:
         try:
-            sitl_args = ["--fc-profile", fc_profile, "--seed", "1"] + ([] if max_rtf is None else ["--max-rtf", f"{max_rtf:g}"])
-            sitl_args += [a for name, value in SENSOR_NOISE if noise for a in ("--param", f"{name}={value:g}")]
+            if ardupilot:
+                sitl_args, stack_args = ["--seed", "1"], {"autopilot": "ardupilot", "firmware": firmware,
+                                                          "rate_hz": ARDUPILOT_RATE_HZ}
+            else:
+                sitl_args = ["--fc-profile", fc_profile, "--seed", "1"] + ([] if max_rtf is None else ["--max-rtf", f"{max_rtf:g}"])
+                sitl_args += [a for name, value in SENSOR_NOISE if noise for a in ("--param", f"{name}={value:g}")]
+                stack_args = {}
             stack = running.enter_context(Stack(None, run / "stack", n, lockstep=lockstep,
-                                                agents_per_process=agents_per_process, sitl_args=sitl_args))
+                                                agents_per_process=agents_per_process, sitl_args=sitl_args, **stack_args))
         except StackError as exc:
             raise _fail(f"the stack did not start: {exc}") from None
         try:
@@ -135,10 +194,12 @@ def demo(
 
         _wait(stack, "heartbeat from every drone and companion", silent, STARTUP_S)
         _step("plan upload", upload_all(link, ids, items))
-        _step("arm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0]))
-        _step("takeoff", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0] + [float("nan")] * 4))
+        kind = {i: link.autopilot(i).heartbeat.autopilot for i in ids}
+        _until_accepted(stack, link, "ready to take off", ids, lambda i: launch_mode_command(kind[i]), ARM_READY_S)
+        _until_accepted(stack, link, "arm", ids, lambda i: (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,)), ARM_READY_S)
+        _step("takeoff", take_off_all(link, ids))
         _wait(stack, "hover after takeoff", lambda: _which(
-            [i for i in ids if link.autopilot(i).heartbeat.custom_mode != CustomMode.HOLD], "not holding"), 30.0)
+            [i for i in ids if link.autopilot(i).landed_state != mavlink.MAV_LANDED_STATE_IN_AIR], "not in the air"), 30.0)
         _wait(stack, "time from the flight controllers' clock",
               lambda: "no SYSTEM_TIME heard" if math.isnan(link.fc_now()) else "", 30.0)
         start = link.fc_now() + 3.0
@@ -162,4 +223,8 @@ def demo(
             60.0)
         _step("disarm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]))
     console.print("every process stopped; making the figures from the log")
-    plot(run)
+    if ardupilot:
+        plot(run, position_bound_m=ARDUPILOT_TELEMETRY_BOUNDS[0], attitude_bound_rad=ARDUPILOT_TELEMETRY_BOUNDS[1],
+             truth_position_bound_m=ARDUPILOT_TRUTH_BOUNDS[0], truth_attitude_bound_rad=ARDUPILOT_TRUTH_BOUNDS[1])
+    else:
+        plot(run)

@@ -54,3 +54,15 @@ def short_number(x: float | None) -> str:
     if x is None or not math.isfinite(x):
         return "-"
     return f"{x:.2e}" if 0 < abs(x) < 1e-3 else f"{x:.4f}"
+
+
+def finite_option(name: str, value: float | None, *, positive: bool = False, non_negative: bool = False) -> None:
+    """--NAME must be a finite number (positive or not negative, if asked); None passes."""
+    if value is None:
+        return
+    if not math.isfinite(value):
+        raise UserError(f"--{name} must be a finite number, got {value}")
+    if positive and value <= 0:
+        raise UserError(f"--{name} must be positive, got {value}")
+    if non_negative and value < 0:
+        raise UserError(f"--{name} must not be negative, got {value}")

@@ -84,6 +84,8 @@ class Seen:
     """NAMED_VALUE_FLOAT name -> (value, Unix time received)."""
     texts: list = field(default_factory=list)
     """(Unix time, severity, text) of the STATUSTEXTs, chunks joined."""
+    landed_state: int | None = None
+    """EXTENDED_SYS_STATE's newest MAV_LANDED_STATE."""
 
 
 class Subscription:
@@ -281,6 +283,8 @@ class GroundLink:
                 seen.heartbeats += 1
             elif t == "NAMED_VALUE_FLOAT":
                 seen.named[msg.name] = (msg.value, now)
+            elif t == "EXTENDED_SYS_STATE":
+                seen.landed_state = msg.landed_state
             elif t == "STATUSTEXT":
                 msg = self._joined(msg, src)
                 if msg is None:

@@ -14,6 +14,7 @@ from rich.table import Table
 
 from .errors import UserError, console, require_positive, short_number, user_errors
 from .scenarios import load_plan
+from .tracks import on_grid
 
 if TYPE_CHECKING:
     from triswarm.protocol import metrics
@@ -21,6 +22,8 @@ if TYPE_CHECKING:
     from .runlog import RunLog
 
 RUN_FILES = ("gcs.tlog", "plan.toml", "run.json")
+TRUTH_FILES = ("truth.csv", "stack/truth.csv")
+"""Where a run keeps its plant's truth, when its flight controllers were a firmware (the demo's stack folder)."""
 LOG_HZ = 50.0
 
 
@@ -31,18 +34,28 @@ def plot(
                                                    "(default: run.json's formation_end_s, else the end of the log).")] = None,
     position_bound_m: Annotated[float, typer.Option("--position-bound-m", help="Position bound for the verdict [m].")] = 0.10,
     attitude_bound_rad: Annotated[float, typer.Option("--attitude-bound-rad", help="Attitude bound for the verdict [rad].")] = 0.02,
+    truth_position_bound_m: Annotated[Optional[float], typer.Option(
+        help="With the plant's truth (RUN/truth.csv or RUN/stack/truth.csv, from a firmware in the loop): its "
+             "position bound [m] (default: --position-bound-m).")] = None,
+    truth_attitude_bound_rad: Annotated[Optional[float], typer.Option(
+        help="The truth's attitude bound [rad] (default: --attitude-bound-rad).")] = None,
 ) -> None:
     """Write RUN/telemetry.csv, RUN/summary.json and the figures from RUN/gcs.tlog; exit 1 if the
-    formation missed the bounds."""
+    formation missed the bounds (in the flight controllers' telemetry, and in the plant's truth
+    where the run has one)."""
     from triswarm.protocol import metrics
 
     from . import plots, report
     from .runlog import RunLogError, read_run_log
 
-    with user_errors(RunLogError):
+    from .truth import TruthError, read_truth
+
+    with user_errors(RunLogError, TruthError):
         if not math.isfinite(window_start_s):
             raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
         require_positive(position_bound_m=position_bound_m, attitude_bound_rad=attitude_bound_rad)
+        truth_bounds = (truth_position_bound_m or position_bound_m, truth_attitude_bound_rad or attitude_bound_rad)
+        require_positive(truth_position_bound_m=truth_bounds[0], truth_attitude_bound_rad=truth_bounds[1])
         if not run.is_dir():
             raise UserError(f"{run}: no such run folder")
         for name in RUN_FILES:
@@ -67,6 +80,17 @@ def plot(
     perf = metrics.assess(log.t_s, pos_err, att_err, window_start_s=window_start_s, position_bound_m=position_bound_m,
                           attitude_bound_rad=attitude_bound_rad)
     per_drone = _per_drone(log, pos_err, att_err, perf)
+    truth = None
+    truth_path = next((run / name for name in TRUTH_FILES if (run / name).is_file()), None)
+    if truth_path is not None:
+        with user_errors(TruthError):
+            tracks = read_truth(truth_path, [d.boot_offset_s for d in log.drones], start_unix_s)
+        position_t, euler_t = on_grid(tracks, log.t_s)
+        pos_err_t, att_err_t = metrics.formation_errors(plan, log.t_s, position_t, euler_t)
+        perf_t = metrics.assess(log.t_s, pos_err_t, att_err_t, window_start_s=window_start_s,
+                                position_bound_m=truth_bounds[0], attitude_bound_rad=truth_bounds[1])
+        truth = {"source": str(truth_path.relative_to(run)), "performance": perf_t.as_dict(),
+                 "per_drone": _per_drone(log, pos_err_t, att_err_t, perf_t), "perf": perf_t}
     run_entry = {
         "source": "tlog", "tlog": "gcs.tlog", "start_unix_s": start_unix_s, "log_hz": LOG_HZ,
         "span_s": [float(log.t_s[0]), float(log.t_s[-1])], "frames": log.tlog.frames,
@@ -75,14 +99,17 @@ def plot(
     with user_errors():
         try:
             report.write_summary(run / "summary.json", plan=plan, design=design, performance=perf, run=run_entry,
-                                 per_drone=per_drone)
+                                 per_drone=per_drone,
+                                 truth=None if truth is None else {k: v for k, v in truth.items() if k != "perf"})
             report.write_telemetry(run / "telemetry.csv", log.t_s, log.position_m, log.euler_rad)
             fig_paths = plots.make_figures(run, plan, log.t_s, log.position_m, log.euler_rad, perf)
         except OSError as exc:
             raise UserError(f"{run}: cannot write the outputs ({exc.strerror})") from None
 
-    _print_result(plan.name, perf, per_drone, log, run, fig_paths)
-    if not perf.within_bounds:
+    _print_result(plan.name, perf, per_drone, log, run, fig_paths, "the flight controllers' telemetry")
+    if truth is not None:
+        _print_result(plan.name, truth["perf"], truth["per_drone"], log, run, [], f"the plant's truth ({truth['source']})")
+    if not perf.within_bounds or (truth is not None and not truth["perf"].within_bounds):
         raise typer.Exit(code=1)
 
 
@@ -127,11 +154,10 @@ def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metr
 
 
 def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], log: RunLog, run: Path,
-                  fig_paths: list[Path]) -> None:
+                  fig_paths: list[Path], source: str) -> None:
     judged = bool((log.t_s >= perf.window_start_s).any())
-    table = Table(title=f"{name}: worst errors over [{perf.window_start_s:g} s, {log.t_s[-1]:.1f} s] of the flight "
-                        "controllers' telemetry" if judged else
-                        f"{name}: the flight controllers' telemetry, to {log.t_s[-1]:.1f} s")
+    table = Table(title=f"{name}: worst errors over [{perf.window_start_s:g} s, {log.t_s[-1]:.1f} s] of {source}"
+                  if judged else f"{name}: {source}, to {log.t_s[-1]:.1f} s")
     table.add_column("drone", justify="right")
     table.add_column("pos [m]", justify="right")
     table.add_column("att [rad]", justify="right")
@@ -149,10 +175,11 @@ def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], l
                       f"triswarm plot {run} --window-start-s S)")
     else:
         verdict = "[green]within[/]" if perf.within_bounds else "[red]outside[/]"
-        console.print(f"formation {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
+        console.print(f"formation ({source}) {verdict} {perf.position_bound_m:g} m / {perf.attitude_bound_rad:g} rad "
                       f"(worst {short_number(perf.worst_position_m)} m, drone {perf.worst_position_drone}; "
                       f"{short_number(perf.worst_attitude_rad)} rad, drone {perf.worst_attitude_drone})")
     if log.tlog.skipped_bytes:
         console.print(f"gcs.tlog: {log.tlog.frames} frames read; {log.tlog.skipped_bytes} bytes skipped "
                       f"in {log.tlog.skipped_runs} places (garbage or broken frames)")
-    console.print(f"outputs in {run}/: summary.json, telemetry.csv" + "".join(f", {p.name}" for p in fig_paths))
+    if fig_paths:
+        console.print(f"outputs in {run}/: summary.json, telemetry.csv" + "".join(f", {p.name}" for p in fig_paths))

@@ -31,11 +31,17 @@ class Recorder:
         """Per vehicle, every change of (custom mode, armed) with the flight controller's time it was
         heard at (Unix time; NaN before its clock was heard)."""
         self._socks = {}
+        self._streams: dict = {}
+        """The sockets of TCP links (a firmware's own ports), each with its parser: a byte stream."""
         self._codec = new_codec(254, 190)
         for v in manifest["vehicles"]:
             link = v["links"]["gcs"]
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.connect((link["host"], link["port"]))
+            if link.get("transport") == "tcp":
+                s = socket.create_connection((link["host"], link["port"]), timeout=5.0)
+                self._streams[s] = new_codec(254, 190)
+            else:
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s.connect((link["host"], link["port"]))
             s.setblocking(False)
             self._socks[s] = v["sysid"]
         self.samples = LiveTracks(sorted(self._socks.values()))
@@ -50,7 +56,7 @@ class Recorder:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
-        for s in self._socks:
+        for s in set(self._socks) | set(self._streams):
             s.close()
 
     def _send(self, s, msg) -> None:
@@ -63,9 +69,10 @@ class Recorder:
         interval = 1e6 / self.rate_hz
         for s, sysid in self._socks.items():
             self._send(s, mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
-            for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
+                               (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):  # (ArduPilot streams none of them unasked)
                 self._send(s, mavlink.MAVLink_command_long_message(sysid, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                                   msg_id, interval, 0, 0, 0, 0, 0))
+                                                                   msg_id, us, 0, 0, 0, 0, 0))
 
     def _run(self) -> None:
         parser = new_codec(254, 190)
@@ -82,8 +89,13 @@ class Recorder:
                         data = s.recv(65535)
                     except (BlockingIOError, OSError):
                         break
-                    reset_parser(parser)
-                    for m in parser.parse_buffer(data) or []:
+                    if not data:  # (the peer closed the connection: nothing more to hear on it)
+                        self._socks.pop(s, None)
+                        break
+                    stream = self._streams.get(s)
+                    if stream is None:
+                        reset_parser(parser)  # (a datagram holds whole frames)
+                    for m in (stream or parser).parse_buffer(data) or []:
                         self._take(sysid, m)
 
     def _take(self, sysid: int, m) -> None:

@@ -49,7 +49,7 @@ def _clean(obj):
 
 
 def write_summary(path: Path, *, plan: Plan, design: Design, performance: Performance, run: dict,
-                  per_drone: list[dict]) -> None:
+                  per_drone: list[dict], truth: dict | None = None) -> None:
     summary = {
         "scenario": plan.name,
         "drones": plan.n_agents,
@@ -59,6 +59,8 @@ def write_summary(path: Path, *, plan: Plan, design: Design, performance: Perfor
         "performance": performance.as_dict(),
         "per_drone": per_drone,
     }
+    if truth is not None:
+        summary["truth"] = truth
     path.write_text(json.dumps(_clean(summary), indent=2, default=_json_default) + "\n", encoding="utf-8")
 
 

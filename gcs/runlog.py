@@ -7,9 +7,9 @@ place where a timestamp is followed by a frame that does.
 
 Each drone (system id i, flight controller component 1) reports ATTITUDE (FRD in NED) and
 LOCAL_POSITION_NED stamped with its boot time, not necessarily on the same instants. They are timed
-as the live recorder times them (``tracks.py``: the boot clock from the first SYSTEM_TIME of each
-boot; the tlog's receive times for a drone that never sent SYSTEM_TIME) and interpolated onto one
-uniform grid in plan time t = unix time - the plan's start time.
+as the live recorder times them (``tracks.py``: the boot clock as the companions flew it, from
+the SYSTEM_TIMEs of each boot; the tlog's receive times for a drone that never sent SYSTEM_TIME)
+and interpolated onto one uniform grid in plan time t = unix time - the plan's start time.
 """
 
 from __future__ import annotations
@@ -104,6 +104,9 @@ class DroneLog:
     """Longest time without a new sample of either stream, within the grid's span."""
     clock: str
     """What timed its samples: "SYSTEM_TIME" or "tlog" (receive times)."""
+    boot_offset_s: float
+    """Unix time minus boot time by its SYSTEM_TIME, as the tracks' clock rule took it (NaN: none came):
+    its first boot's clock."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +145,8 @@ def read_run_log(path: Path, n_drones: int, start_unix_s: float, rate_hz: float 
     for tr in tracks:
         gap_s = max(float(np.diff(np.clip(t, t_s[0], t_s[-1]), prepend=t_s[0], append=t_s[-1]).max())
                     for t in (tr.attitude_t_s, tr.position_t_s))
+        offsets = [o for o in samples[len(drones)].offsets_at(start_unix_s) if not math.isnan(o)]
         drones.append(DroneLog(tr.attitude_t_s.size, tr.position_t_s.size, gap_s,
-                               "SYSTEM_TIME" if tr.clock == "SYSTEM_TIME" else "tlog"))
+                               "SYSTEM_TIME" if tr.clock == "SYSTEM_TIME" else "tlog",
+                               offsets[0] if offsets else math.nan))
     return RunLog(t_s, position_m, euler_rad, drones, stats)

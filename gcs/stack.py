@@ -96,6 +96,10 @@ class Stack:
     """The flight-controller link of agent i (e.g. a serial port) instead of its vehicle's companion
     link in the SITL's manifest (set before the companions start: ``companions=False``, then
     ``start_companion``)."""
+    autopilot: str = "triswarm"
+    """The flight controllers: triswarm's simulated ones, or ArduPilot's SITL firmware (``sitl up
+    --autopilot ardupilot``, its binary ``firmware``), whose plant logs its truth to truth.csv."""
+    firmware: Path | None = None
     lockstep: bool = False
     """The SITL steps when every companion has answered (``sitl up --lockstep``): the stack runs on
     simulated time, as fast as the machine allows. ``start_at`` is then on that clock, and
@@ -148,10 +152,15 @@ class Stack:
         manifest_path = self.workdir / "manifest.json"
         if manifest_path.is_file():  # (a restart's old one; anything else there, the SITL says what)
             manifest_path.unlink()
+        if self.autopilot == "ardupilot":
+            own = ["--autopilot", "ardupilot", "--run-dir", str(self.workdir / "firmware"),
+                   "--truth", str(self.workdir / "truth.csv"), "--quiet",
+                   *(["--firmware", str(self.firmware)] if self.firmware is not None else [])]
+        else:
+            own = ["--base-port", str(self.sitl_base_port), *(["--lockstep"] if self.lockstep else ["--quiet"])]
         self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
-                             str(manifest_path), "--base-port", str(self.sitl_base_port),
-                             "--stats", str(self.workdir / "stats" / "sitl.json"),
-                             *(["--lockstep"] if self.lockstep else ["--quiet"]), *self.sitl_args])
+                             str(manifest_path), "--stats", str(self.workdir / "stats" / "sitl.json"), *own,
+                             *self.sitl_args])
         deadline = time.monotonic() + 60.0
         while not manifest_path.is_file():
             if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
@@ -189,8 +198,10 @@ class Stack:
             links += ["--id", str(i), "--fc", self.fc_links.get(i, v["links"]["companion"]["pymavlink"]),
                       "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}"]
         extra = [arg for i in agents for arg in self.companion_args.get(i, [])]
+        home = self.manifest["home"]
         return [sys.executable, "-m", "triswarm.companion.cli", *links,
                 *plan, "--zenoh-base-port", str(self.zenoh_base), "--rate-hz", str(self.rate_hz),
+                "--home", f"{home['lat_deg']!r},{home['lon_deg']!r},{home['alt_m']!r}",
                 "--state-dir", str(self.workdir / "state" / "{id}"), "--stats", str(self.workdir / "stats" / "{id}.json"),
                 *extra]
 

@@ -17,6 +17,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from triswarm.companion.state import read_signing_key
+from triswarm.protocol.autopilots import takeoff_commands
 from triswarm.protocol.frames import flip
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, encode_plan
@@ -296,11 +297,32 @@ def disarm(force: Annotated[bool, typer.Option(help="Disarm in the air too (the 
 
 
 def takeoff(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
-            signing_key: SigningKey = None) -> None:
-    """Take off with the flight controllers' own controller to their TKO_ALT_M and hover (a plan
-    starting later takes over from there)."""
-    _vehicles("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, math.nan, math.nan, math.nan, math.nan],
-              manifest, endpoint, drone, tlog, signing_key)
+            signing_key: SigningKey = None,
+            height_m: Annotated[Optional[float], typer.Option(help="Height above home [m] for ArduPilot (default 2.5; "
+                                                                   "triswarm's simulated flight controllers take off "
+                                                                   "to their TKO_ALT_M).")] = None) -> None:
+    """Take off with the flight controllers' own controllers and hover (a plan starting later takes
+    over from there). ArduCopter is put in GUIDED first."""
+    with user_errors():
+        if height_m is not None and not (math.isfinite(height_m) and 0.5 <= height_m <= 100.0):
+            raise UserError(f"--height-m must be between 0.5 and 100 m, got {height_m}")
+    with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
+        report("takeoff", take_off_all(link, chosen, height_m))
+
+
+def take_off_all(link: GroundLink, chosen: list[int], height_m: float | None = None) -> dict[int, tuple[bool, str]]:
+    """Each chosen drone's flight controller takes off by itself, as its kind is asked to
+    (``protocol.autopilots.takeoff_commands``); stops at the first command one refuses."""
+    def one(i: int) -> tuple[bool, str]:
+        heartbeat = link.autopilot(i).heartbeat
+        kind = heartbeat.autopilot if heartbeat is not None else mavlink.MAV_AUTOPILOT_GENERIC
+        for command, params in takeoff_commands(kind, height_m):
+            ok, detail = result_text(*link.command(i, COMP_AUTOPILOT, command, list(params)))
+            if not ok:
+                return ok, detail
+        return True, "accepted"
+
+    return for_each(chosen, one)
 
 
 def land(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,

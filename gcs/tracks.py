@@ -6,11 +6,14 @@ Samples are kept as they came: per drone and stream (boot time, receive time, va
 SYSTEM_TIME offsets (Unix time - boot time). Each stream is timed and interpolated on its own
 stamps, so attitude and position need not share an instant or a rate.
 
-The clock rule: a track runs on the drone's boot clock from the first SYSTEM_TIME of each boot
-(every sample of that boot, also those that came before it, is its boot time plus that offset; a
-later step of the Unix time, someone setting the clock, does not move what was flown). A boot time
-that goes back by a second or more (``REBOOT_JUMP_US``) is a new boot. A boot without any
-SYSTEM_TIME is timed by its receive times.
+The clock rule is the companions': a track runs on the drone's boot clock with the offset its
+SYSTEM_TIME gave last before the plan started (the companions take the flight controller's Unix
+time as it comes on the ground, and fly on the boot clock once the plan runs: a later step of the
+Unix time, someone setting the clock, does not move what was flown; an earlier one, a GPS fix
+correcting a clock that started from the computer's, does). Every sample of that boot, also those
+that came before, is its boot time plus that offset; a boot whose SYSTEM_TIMEs all came after the
+start runs on its first. A boot time that goes back by a second or more (``REBOOT_JUMP_US``) is a
+new boot. A boot without any SYSTEM_TIME is timed by its receive times.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ class StreamSamples:
     boot_s: list[float] = field(default_factory=list)
     received_unix_s: list[float] = field(default_factory=list)
     boot: list[int] = field(default_factory=list)
-    """Which of the drone's boots (an index into DroneSamples.boot_offsets_s) the sample is of."""
+    """Which of the drone's boots (an index into DroneSamples.boot_clocks) the sample is of."""
     values: list[np.ndarray] = field(default_factory=list)
 
     def copy(self) -> "StreamSamples":
@@ -49,11 +52,11 @@ class StreamSamples:
 @dataclass
 class DroneSamples:
     """One drone's attitude (paper Euler angles [rad]) and position (paper earth frame [m]) samples,
-    and per boot its first SYSTEM_TIME's offset (NaN until heard)."""
+    and per boot its SYSTEM_TIMEs: (Unix time, offset = Unix time - boot time) [s], as they came."""
 
     attitude: StreamSamples = field(default_factory=StreamSamples)
     position: StreamSamples = field(default_factory=StreamSamples)
-    boot_offsets_s: list[float] = field(default_factory=list)
+    boot_clocks: list[list[tuple[float, float]]] = field(default_factory=list)
     newest_boot_s: float = -math.inf
     """The newest boot time heard in the current boot."""
     system_times: int = 0
@@ -62,13 +65,22 @@ class DroneSamples:
     before a boot whose SYSTEM_TIME has not come yet."""
 
     def _boot_of(self, boot_s: float) -> int:
-        if not self.boot_offsets_s or boot_s < self.newest_boot_s - REBOOT_JUMP_US / 1e6:
-            self.boot_offsets_s.append(math.nan)
+        if not self.boot_clocks or boot_s < self.newest_boot_s - REBOOT_JUMP_US / 1e6:
+            self.boot_clocks.append([])
             self.newest_boot_s = boot_s
         self.newest_boot_s = max(self.newest_boot_s, boot_s)
-        if not math.isnan(self.boot_offsets_s[-1]):
-            self.heard_unix_s = self.boot_offsets_s[-1] + self.newest_boot_s
-        return len(self.boot_offsets_s) - 1
+        if self.boot_clocks[-1]:
+            self.heard_unix_s = self.boot_clocks[-1][-1][1] + self.newest_boot_s
+        return len(self.boot_clocks) - 1
+
+    def offsets_at(self, start_unix_s: float) -> list[float]:
+        """Each boot's offset [s] for a plan that started at ``start_unix_s`` (the clock rule); NaN
+        for a boot without SYSTEM_TIME."""
+        out = []
+        for clocks in self.boot_clocks:
+            before = [offset for unix_s, offset in clocks if unix_s <= start_unix_s]
+            out.append(before[-1] if before else clocks[0][1] if clocks else math.nan)
+        return out
 
     def take(self, received_unix_s: float, msg) -> bool:
         """Keep msg if it is one of the flight controller's ATTITUDE, LOCAL_POSITION_NED or
@@ -80,9 +92,11 @@ class DroneSamples:
             if msg.time_unix_usec <= 0:
                 return False
             boot = self._boot_of(msg.time_boot_ms / 1000.0)
-            if math.isnan(self.boot_offsets_s[boot]):
-                self.boot_offsets_s[boot] = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
-                self.heard_unix_s = self.boot_offsets_s[boot] + self.newest_boot_s
+            offset = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+            clocks = self.boot_clocks[boot]
+            if not clocks or clocks[-1][1] != offset:  # (a new offset; the same again adds nothing)
+                clocks.append((msg.time_unix_usec / 1e6, offset))
+            self.heard_unix_s = offset + self.newest_boot_s
             self.system_times += 1
             return True
         if kind == "ATTITUDE":
@@ -98,8 +112,8 @@ class DroneSamples:
         return True
 
     def copy(self) -> "DroneSamples":
-        return DroneSamples(self.attitude.copy(), self.position.copy(), list(self.boot_offsets_s), self.newest_boot_s,
-                            self.system_times, self.heard_unix_s)
+        return DroneSamples(self.attitude.copy(), self.position.copy(), [list(c) for c in self.boot_clocks],
+                            self.newest_boot_s, self.system_times, self.heard_unix_s)
 
 
 @dataclass(frozen=True)
@@ -133,7 +147,7 @@ def track(drone: DroneSamples, start_unix_s: float, name: str = "drone") -> Trac
     for kind, stream in zip(STREAMS, (drone.attitude, drone.position)):
         if not stream.values:
             raise TrackError(f"no {kind} from {name}")
-    offsets = np.asarray(drone.boot_offsets_s, dtype=float)
+    offsets = np.asarray(drone.offsets_at(start_unix_s), dtype=float)
     t_att, eta = _timed(drone.attitude, offsets, start_unix_s)
     t_pos, pos = _timed(drone.position, offsets, start_unix_s)
     return Track(t_att, np.unwrap(eta, axis=0), t_pos, pos,

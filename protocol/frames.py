@@ -87,6 +87,17 @@ def body_velocity_to_earth(q_ned_frd, v_frd) -> tuple[float, float, float]:
     return tuple((flip(R @ np.asarray(v_frd, dtype=float))).tolist())
 
 
+def parse_home(text: str) -> tuple[float, float, float]:
+    """A home written LAT,LON,ALT_M (degrees, degrees, metres) as three numbers; ValueError saying
+    what is wrong (not three numbers, or not a place on Earth)."""
+    try:
+        lat, lon, alt = (float(p) for p in str(text).split(","))
+    except ValueError:  # not numbers, or not three of them
+        raise ValueError(f"--home must be LAT,LON,ALT_M (three numbers), got {text!r}") from None
+    LocalProjection(lat, lon, alt)  # validates
+    return lat, lon, alt
+
+
 class LocalProjection:
     """Azimuthal equidistant projection around a home point (as PX4's map_projection): local
     north/east metres <-> latitude/longitude degrees. Exact along great circles through home;

@@ -79,6 +79,30 @@ def param_specs(af: Airframe, profile: Profile = TRISWARM) -> list[ParamSpec]:
     return specs
 
 
+def airframe_from_params(nominal: Airframe, p: dict[str, float]) -> Airframe:
+    """The plant that the airframe parameters ``p`` (every name of AIRFRAME_PARAMS) describe."""
+    return dataclasses.replace(
+        nominal, mass_kg=p["MASS_KG"], Ixx_kg_m2=p["IXX_KGM2"], Iyy_kg_m2=p["IYY_KGM2"],
+        Izz_kg_m2=p["IZZ_KGM2"], Iyz_kg_m2=p["IYZ_KGM2"], k_f_N_s2=p["KF"], k_d_N_m_s2=p["KD"],
+        arm_length_m=p["ARM_LEN_M"], servo_delay_s=p["SERVO_DELAY_S"],
+        max_rotor_speed_rad_s=p["MOT_MAX_RPM"] * RPM_TO_RAD_S, servo_limit_rad=math.radians(p["SERVO_LIM_DEG"]))
+
+
+def plant_airframe(nominal: Airframe, changes: dict[str, float]) -> Airframe:
+    """``nominal`` with some airframe parameters changed (names of AIRFRAME_PARAMS, each checked
+    against its range as a parameter set would be); ParameterError says what is wrong."""
+    specs = {s.name: s for s in param_specs(nominal) if s.name in AIRFRAME_PARAMS}
+    values = {name: float(spec.default) for name, spec in specs.items()}
+    for name, value in changes.items():
+        spec = specs.get(name)
+        if spec is None:
+            raise ParameterError(f"{name} is not an airframe parameter ({', '.join(sorted(specs))})")
+        if not (math.isfinite(value) and spec.lo <= value <= spec.hi):
+            raise ParameterError(f"{name} must be within [{spec.lo:g}, {spec.hi:g}], got {value:g}")
+        values[name] = float(value)
+    return airframe_from_params(nominal, values)
+
+
 @dataclass
 class Outgoing:
     msg: object
@@ -147,12 +171,7 @@ class FlightController:
         return self._airframe
 
     def _airframe_from_params(self) -> Airframe:
-        p = self.params
-        return dataclasses.replace(
-            self.nominal, mass_kg=p["MASS_KG"], Ixx_kg_m2=p["IXX_KGM2"], Iyy_kg_m2=p["IYY_KGM2"],
-            Izz_kg_m2=p["IZZ_KGM2"], Iyz_kg_m2=p["IYZ_KGM2"], k_f_N_s2=p["KF"], k_d_N_m_s2=p["KD"],
-            arm_length_m=p["ARM_LEN_M"], servo_delay_s=p["SERVO_DELAY_S"],
-            max_rotor_speed_rad_s=p["MOT_MAX_RPM"] * RPM_TO_RAD_S, servo_limit_rad=math.radians(p["SERVO_LIM_DEG"]))
+        return airframe_from_params(self.nominal, self.params)
 
     def set_param(self, name: str, value: float) -> str | None:
         """Set a parameter; returns None, or the reason it was refused."""

@@ -51,15 +51,6 @@ class SitlOptions:
     """The flight controllers' clocks run this much faster than simulated time [ppm] (``fc.clock_s``)."""
 
 
-def parse_home(text: str) -> tuple[float, float, float]:
-    try:
-        lat, lon, alt = (float(p) for p in text.split(","))
-    except ValueError:  # not numbers, or not three of them
-        raise ValueError(f"--home must be LAT,LON,ALT_M (three numbers), got {text!r}") from None
-    LocalProjection(lat, lon, alt)  # validates
-    return lat, lon, alt
-
-
 async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = None,
                    say: Callable[..., None] = lambda text, warning=False: print(text)) -> dict:
     """Open every link, hand the manifest to ``on_ready``, fly until a signal (or duration of

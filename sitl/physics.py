@@ -185,8 +185,9 @@ SENSOR_COLUMNS = {"position_m": slice(0, 3), "velocity_e_m_s": slice(3, 6), "vel
 @numba.njit(cache=True)
 def _sensors(state, rho, params, landed, wind_now, out):
     """What ideal sensors read on every drone: out (N, 22), columns as ``SENSOR_COLUMNS``. The
-    specific force is what an accelerometer feels: thrust, drag and, on the ground, the ground's
-    push against gravity (body frame)."""
+    specific force is what an accelerometer feels (body frame): thrust and drag in flight; at rest
+    on the ground, the push that holds it against gravity, whatever the rotors do (the ground takes
+    the thrust's share: a drone spinning up is not accelerating)."""
     for i in range(state.shape[0]):
         s, P = state[i], params[i]
         qw, qx, qy, qz = s[6], s[7], s[8], s[9]
@@ -213,11 +214,11 @@ def _sensors(state, rho, params, landed, wind_now, out):
             a = drag(ve, R, P, (wind_now[i, 0], wind_now[i, 1], wind_now[i, 2]))
             for c in range(3):
                 sf[c] += a[c]
-        if landed[i]:
+        if landed[i]:  # at rest: the ground takes whatever the thrust does not, so the reading is gravity's
             g = P[GRAVITY]
-            sf[0] += g * R[6]
-            sf[1] += g * R[7]
-            sf[2] += g * R[8]
+            sf[0] = g * R[6]
+            sf[1] = g * R[7]
+            sf[2] = g * R[8]
         for c in range(3):
             out[i, 19 + c] = sf[c]
 

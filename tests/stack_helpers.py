@@ -160,6 +160,23 @@ def judge(plan, recorder, start_unix: float, t_from: float, t_to: float, drones=
     return ok, report
 
 
+def judge_truth(plan, truth_path, recorder, start_unix: float, t_from: float, t_to: float,
+                position_bound_m: float, attitude_bound_rad: float, rate_hz: float = 50.0):
+    """As ``judge``, from a firmware-in-the-loop run's plant truth (``gcs/truth.py``), put on each
+    drone's clock as the recorder heard it."""
+    from triswarm.gcs.tracks import on_grid
+    from triswarm.gcs.truth import read_truth
+
+    offsets = [next((o for o in d.offsets_at(start_unix) if not np.isnan(o)), np.nan)
+               for _, d in sorted(recorder.samples.snapshot().items())]
+    t = np.arange(t_from, t_to, 1.0 / rate_hz)
+    pos, eta = on_grid(read_truth(truth_path, offsets, start_unix), t)
+    pe, ae = metrics.formation_errors(plan, t, pos, eta)
+    worst_p, worst_a = pe.max(axis=0), ae.max(axis=(0, 2))
+    report = {i + 1: (round(float(p), 4), round(float(a), 4)) for i, (p, a) in enumerate(zip(worst_p, worst_a))}
+    return bool((worst_p <= position_bound_m).all() and (worst_a <= attitude_bound_rad).all()), report
+
+
 def small_plan(spec: dict, drones: int, name: str) -> dict:
     """The paper's plan for fewer drones, over the two-chain graph alone (its families extend to any N)."""
     import copy

@@ -186,7 +186,7 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     estimates = {j: Neighbour() for j in (2, 3, 4)}
     bus = SimpleNamespace(alive={1, 4}, estimates=estimates, status_of=lambda j, plans: None)
     agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
-                            autopilot=SimpleNamespace(now_unix=lambda: 1000.0),
+                            fc=SimpleNamespace(now_unix=lambda: 1000.0),
                             params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
     flight = Flight(agent)
     flight.t_p = 50.0

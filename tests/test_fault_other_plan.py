@@ -16,7 +16,7 @@ def agent(statuses: dict):
     said = []
     a = SimpleNamespace(id=1, bus=SimpleNamespace(statuses=statuses), plans=SimpleNamespace(mission=SimpleNamespace(plan_id=PLAN)),
                         plans_on_bus=(PLAN,), _told_plans=set(), _told_clock_step=None,
-                        autopilot=SimpleNamespace(clock=SimpleNamespace(refused_step_us=None)),
+                        fc=SimpleNamespace(clock=SimpleNamespace(refused_step_us=None)),
                         say=lambda text, severity=None: said.append(text))
     return a, said
 
@@ -37,7 +37,7 @@ def test_an_agent_of_another_plan_is_said_once_per_plan():
 
 def test_a_refused_clock_step_is_said_once_per_step():
     a, said = agent({})
-    clock = a.autopilot.clock
+    clock = a.fc.clock
     for step in (None, 30_000_000, 30_000_000, 30_100_000, -30_000_000, -30_000_000):
         clock.refused_step_us = step
         Agent.tell_others(a)

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from triswarm.companion.autopilot import Autopilot
+from triswarm.companion.flight_controller import FlightController
 from triswarm.companion.ground_station import GroundStation
 from triswarm.companion.bus import Bus, Neighbour, _Inbox, _Member, _parse_status
 from triswarm.companion.links import MavLink
@@ -28,7 +28,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def test_attitude_quaternion_is_read():
     """ATTITUDE_QUATERNION carries q1..q4 (ODOMETRY an array q): reading it raised in every read.
     A yaw of 0.3 rad in NED (a quarter-angle quaternion about z down) is -0.3 rad in the paper's frame."""
-    fc = Autopilot(1, "udpout:127.0.0.1:9", logging.getLogger("test"), lambda: None)
+    fc = FlightController(1, "udpout:127.0.0.1:9", logging.getLogger("test"), lambda: None)
     half = 0.15
     fc.take(M.MAVLink_local_position_ned_message(1000, 1.0, 2.0, -3.0, 0.0, 0.0, 0.0), 0.0)
     fc.take(M.MAVLink_attitude_quaternion_message(1000, math.cos(half), 0.0, 0.0, math.sin(half), 0.01, 0.02, 0.03,

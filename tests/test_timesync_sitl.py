@@ -1,5 +1,5 @@
 """TIMESYNC against a real `triswarm sitl up` whose clock runs 100 ppm fast, over loopback MAVLink,
-through the companion's own flight-controller face (``companion.autopilot.Autopilot``).
+through the companion's own flight-controller face (``companion.flight_controller.FlightController``).
 
 TIMESYNC holds one physical clock against another, so it is judged on the wall clock: the SITL runs
 in real time, its autopilot stamping each answer with its clock on arrival, (1 + 100e-6) times
@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from triswarm.companion.autopilot import Autopilot
+from triswarm.companion.flight_controller import FlightController
 from triswarm.companion.timesync import EVERY_S
 from triswarm.protocol.mavlink import mavlink
 
@@ -34,7 +34,7 @@ DEADLINE_S = 90.0
 
 async def _measure(url: str) -> dict:
     loop = asyncio.get_running_loop()
-    ap = Autopilot(1, url, logging.getLogger("test"), lambda: None)
+    ap = FlightController(1, url, logging.getLogger("test"), lambda: None)
     ap.link.open(loop, lambda link, msgs, t_rx: [ap.take(m, t_rx) for m in msgs])
     hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
     try:

@@ -187,7 +187,8 @@ def _system_time(drone: DroneSamples, unix_s: float, boot_ms: int) -> None:
 
 def test_the_clock_rule():
     """Receive times until a boot's first SYSTEM_TIME is heard, then that boot's offset for all of
-    it; a later step of the Unix time moves nothing; a reboot takes its own first offset."""
+    it; a step of the Unix time after the plan's start moves nothing, one before it is taken (the
+    companions take the clock as it comes until they fly); a reboot takes its own offset."""
     drone = DroneSamples()
     for k in range(3):  # no SYSTEM_TIME yet: received at 100.5, 100.6, 100.7
         _sample(drone, 100.5 + 0.1 * k, 1000 + 100 * k, k)
@@ -204,3 +205,6 @@ def test_the_clock_rule():
         assert np.allclose(t_s, [99.75, 99.85, 99.95, 100.05, 100.15, 299.95, 300.05])
     assert np.allclose(tr.position_m[:, 0], [0, 1, 2, 3, 4, 5, 6]) and tr.clock == "SYSTEM_TIME"
     assert drone.heard_unix_s == pytest.approx(400.05)
+    # a plan that started at 270, after the step: the first boot flew on the stepped clock (258.65)
+    later = track(drone, 270.0)
+    assert np.allclose(later.position_t_s[:5], [258.65 + b - 270.0 for b in (1.0, 1.1, 1.2, 1.3, 1.4)])

@@ -1,5 +1,7 @@
-"""The flight-controller face of an agent: its link, what the autopilot says of itself, its clock,
-its telemetry turned into samples, and the commands the companion sends it.
+"""The flight-controller face of an agent: its link, what the flight controller says of itself, its
+clock, its telemetry turned into samples, and the commands the companion sends it. What differs
+from one kind of flight controller to another (its modes, its actuator scaling and output path,
+its set-up, its position frame) is its ``Autopilot`` (``autopilots/``), picked at set-up.
 
 Telemetry: attitude, position and gyro rates come on streams of their own (``telemetry.py`` turns
 them into a sample at each new attitude instant, the position brought to it). Of the messages
@@ -10,9 +12,10 @@ paper's frames here, the only place they are read. SYSTEM_TIME sets the clock
 (``clock.FcClock``); HEARTBEAT and EXTENDED_SYS_STATE the vehicle's state, which ``on_state``
 hears of. Samples wait in ``backlog`` for the control loop, which the link wakes after every read.
 
-Set-up (``setup``): wait for the autopilot (saying every few seconds what it waits for), read its
-actuator scaling (MOT_MAX_RPM, SERVO_LIM_DEG) and whether it is a simulator in lockstep
-(SIM_LOCKSTEP), ask for the telemetry at the control rate, and wait for its clock.
+Set-up (``setup``): wait for the flight controller's HEARTBEAT (saying every few seconds what it
+waits for), pick its ``Autopilot`` from it (or as configured), learn from that its actuator
+scaling, whether it is a simulator (in lockstep or not) and its own set-up, ask for the telemetry
+at the control rate, and wait for its clock.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from collections.abc import Callable
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 
 from .actuators import ActuatorControlTarget
+from .autopilots.base import Autopilot
+from .autopilots.registry import pick
 from .clock import Answers, FcClock
 from .links import MavLink
 from .telemetry import Assembler, Sample, attitude_of, gyro_of, position_of
@@ -43,11 +48,20 @@ WAITING_SAY_EVERY_S = 5.0
 """While set-up waits for the flight controller, it says what for this often [s, wall]."""
 
 
-class Autopilot:
-    """One agent's flight controller (system ``sysid``, component 1) on link ``url``."""
+class FlightController:
+    """One agent's flight controller (system ``sysid``, component 1) on link ``url``, of the kind
+    ``profile`` names (``autopilots.registry.PROFILES``; "auto": as its HEARTBEAT says). ``home``:
+    the swarm's common origin (latitude, longitude [deg], altitude [m]), for autopilots whose local
+    frame is their own."""
 
-    def __init__(self, sysid: int, url: str, log, on_state: Callable[[], None]) -> None:
+    def __init__(self, sysid: int, url: str, log, on_state: Callable[[], None], profile: str = "auto",
+                 home: tuple[float, float, float] | None = None) -> None:
         self.sysid = sysid
+        self.profile, self.home = profile, home
+        self.autopilot: Autopilot | None = None
+        """What kind of flight controller it is (set up: ``setup``)."""
+        self.identity = (-1, -1)
+        """Its HEARTBEAT's autopilot and type fields."""
         self.link = MavLink("fc", url, sysid, COMP_ONBOARD)
         self.log = log
         self.on_state = on_state
@@ -63,8 +77,6 @@ class Autopilot:
         self.clock = FcClock()
         self.answers = Answers(self.write)
         self.timesync = TimeSync(self.send, sysid)
-        self.simulator = False
-        """The flight controller is triswarm's simulator (it has SIM_LOCKSTEP): its clock is its host's."""
         self.last_sample: Sample | None = None
         self.backlog: deque[Sample] = deque(maxlen=50)
         """Samples not acted on yet (the control loop takes them)."""
@@ -79,6 +91,7 @@ class Autopilot:
         started again): nothing of the one before is kept (its clock, its streams, its state, its
         answers); ``setup`` learns it anew."""
         self.heard = False
+        self.autopilot = None
         self.output = self.last_sample = None
         self.clock.forget()
         self.answers = Answers(self.write)
@@ -94,6 +107,39 @@ class Autopilot:
         self.link.send(msg)
 
     @property
+    def simulator(self) -> bool:
+        """A simulator, whose clock is its host's: no wall-clock checks against it."""
+        return self.autopilot is not None and self.autopilot.simulator
+
+    @property
+    def offset_e_m(self) -> tuple[float, float, float]:
+        return (0.0, 0.0, 0.0) if self.autopilot is None else self.autopilot.position_offset_e_m
+
+    @property
+    def in_control(self) -> bool:
+        """In the mode that hands the vehicle to the companion."""
+        return self.autopilot is not None and self.mode == self.autopilot.control_mode
+
+    def released(self) -> str | None:
+        """Why the flight controller has taken the vehicle back, or None (in flight, armed)."""
+        return None if self.autopilot is None else self.autopilot.released(self.mode, self.critical)
+
+    def mode_name(self) -> str:
+        return f"mode {self.mode}" if self.autopilot is None else self.autopilot.mode_name(self.mode)
+
+    async def take_control(self) -> None:
+        """Into the mode that hands the vehicle to the companion (RuntimeError: refused)."""
+        command, params = self.autopilot.take_control()
+        result = await self.command(command, *params)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise RuntimeError(f"the flight controller refused external control ({result})")
+        self.mode = self.autopilot.control_mode
+
+    async def launch(self, height_m: float, say: Callable[[str], None]) -> None:
+        """Off the ground by its own controllers, if its kind needs that before it hands over."""
+        await self.autopilot.launch(self, height_m, say)
+
+    @property
     def ready(self) -> bool:
         """Set up: the actuator scaling is known, commands can be made."""
         return self.output is not None
@@ -107,6 +153,7 @@ class Autopilot:
             self._telemetry(t, msg, t_rx)
         elif t == "HEARTBEAT":
             self.heard = True
+            self.identity = (msg.autopilot, msg.type)
             self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self.mode = msg.custom_mode
             self.critical = msg.system_status == mavlink.MAV_STATE_CRITICAL
@@ -122,6 +169,8 @@ class Autopilot:
             self._resolve(("ack", msg.command), msg.result)
         elif t == "PARAM_VALUE":
             self._resolve(("param", msg.param_id), msg.param_value)
+        elif self.autopilot is not None:
+            self.autopilot.take(msg)
 
     def _telemetry(self, t: str, msg, t_rx: float) -> None:
         t_us = msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else int(msg.time_usec)
@@ -135,7 +184,9 @@ class Autopilot:
             if state is None:
                 asm.counters["odometry_frames_not_used"] += 1
             else:
-                asm.take_position(t_us, *state)
+                (x, y, z), velocity = state
+                dx, dy, dz = self.offset_e_m
+                asm.take_position(t_us, (x + dx, y + dy, z + dz), velocity)
         if t == "HIGHRES_IMU":
             asm.take_gyro(t_us, gyro_of(msg))
         s = asm.sample(t_rx)
@@ -193,34 +244,24 @@ class Autopilot:
 
     async def setup(self, rate_hz: float, heartbeat: Callable[[], object], scaling: tuple[float, float],
                     say: Callable[[str], None]) -> float:
-        """Wait for the flight controller, learn its actuator scaling (its MOT_MAX_RPM and
-        SERVO_LIM_DEG, else ``scaling``: the plan airframe's [RPM, deg]), ask for the telemetry at
-        ``rate_hz`` and see what comes. Says what it waits for, every WAITING_SAY_EVERY_S.
-        Returns the rate [Hz] the attitude comes at (``rate_hz`` if within 5 % of it)."""
-        await self._wait("a HEARTBEAT", lambda: self.heard, lambda: self.send(heartbeat()), say)
-        try:
-            self.max_rpm = await self.param("MOT_MAX_RPM")
-            self.servo_deg = await self.param("SERVO_LIM_DEG")
-        except TimeoutError:  # an autopilot, not triswarm's simulator: the plan's airframe says
-            self.max_rpm, self.servo_deg = scaling
-            say(f"the flight controller has no MOT_MAX_RPM / SERVO_LIM_DEG: actuator commands scaled to the plan's "
-                f"airframe ({self.max_rpm:g} RPM, {self.servo_deg:g} deg)")
-        try:
-            self.answers.lockstep = await self.param("SIM_LOCKSTEP") == 1.0
-            self.simulator = True
-        except TimeoutError:  # an autopilot, not triswarm's simulator
-            self.answers.lockstep = False
-        if self.answers.lockstep:
+        """Wait for the flight controller, pick its ``Autopilot``, learn its actuator scaling (else
+        ``scaling``: the plan airframe's [RPM, deg]) and the rest of its set-up, ask for the
+        telemetry at ``rate_hz`` and see what comes. Says what it waits for, every
+        WAITING_SAY_EVERY_S. Returns the rate [Hz] the attitude comes at (``rate_hz`` if within 5 %
+        of it). AutopilotError: it cannot be flown as it is."""
+        await self.wait("a HEARTBEAT", lambda: self.heard, lambda: self.send(heartbeat()), say)
+        self.autopilot = ap = pick(self.profile, *self.identity, home=self.home)
+        self.max_rpm, self.servo_deg = await ap.scaling(self, scaling, say)
+        await ap.detect_simulator(self)
+        self.answers.lockstep = ap.lockstep
+        if ap.lockstep:
             self.log.info("the flight controller is a simulator in lockstep: every state is answered")
-        interval = 1e6 / rate_hz
-        for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
-                           (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
-                           (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6),
-                           (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)):  # (ArduPilot streams none of it unasked)
+        await ap.prepare(self, say)
+        for msg_id, us in ap.streams(rate_hz):
             await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
         request_time = lambda: self.send(mavlink.MAVLink_command_long_message(  # noqa: E731
             self.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 0, 0, 0, 0, 0, 0))
-        await self._wait("SYSTEM_TIME", lambda: self.clock.known, request_time, say)
+        await self.wait("SYSTEM_TIME", lambda: self.clock.known, request_time, say)
         if self.answers.lockstep:
             # (a simulator in lockstep sends what it is asked, and its clock stands while this set-up
             # holds its answers: the rates are told once they have been seen, nothing waits for them)
@@ -228,8 +269,7 @@ class Autopilot:
             asyncio.ensure_future(self._measure_rates(rate_hz, None))
         else:
             attitude_hz = await self._measure_rates(rate_hz, say)
-        self.output = ActuatorControlTarget(self.link.codec, self.sysid, self.max_rpm * math.pi / 30.0,
-                                            math.radians(self.servo_deg))
+        self.output = ap.output(self.link.codec, self.sysid, self.max_rpm * math.pi / 30.0, math.radians(self.servo_deg))
         self.answers.holding = False
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,
         # which would otherwise stall the loop for tens of milliseconds at a time.
@@ -237,7 +277,7 @@ class Autopilot:
         gc.freeze()
         return attitude_hz
 
-    async def _wait(self, what: str, done: Callable[[], bool], poke: Callable[[], None] | None,
+    async def wait(self, what: str, done: Callable[[], bool], poke: Callable[[], None] | None,
                     say: Callable[[str], None] | None) -> None:
         """Until ``done()``, poking every 0.2 s and saying every WAITING_SAY_EVERY_S what for (not
         with ``say`` None)."""
@@ -258,9 +298,9 @@ class Autopilot:
         asm = self.assembler
         for stream in (asm.attitude, asm.position):
             stream.count, stream.first_us = 0, -1
-        await self._wait("attitude (ATTITUDE, ATTITUDE_QUATERNION or ODOMETRY)", lambda: asm.attitude.count >= 2, None, say)
-        await self._wait("position (LOCAL_POSITION_NED or ODOMETRY)", lambda: asm.position.count >= 2, None, say)
-        await self._wait("half a second of telemetry", lambda: asm.attitude.t_us - asm.attitude.first_us >= MEASURE_US
+        await self.wait("attitude (ATTITUDE, ATTITUDE_QUATERNION or ODOMETRY)", lambda: asm.attitude.count >= 2, None, say)
+        await self.wait("position (LOCAL_POSITION_NED or ODOMETRY)", lambda: asm.position.count >= 2, None, say)
+        await self.wait("half a second of telemetry", lambda: asm.attitude.t_us - asm.attitude.first_us >= MEASURE_US
                          and asm.position.t_us - asm.position.first_us >= MEASURE_US, None, say)
         att_hz, pos_hz = asm.attitude.rate_hz(), asm.position.rate_hz()
         if self.answers.lockstep:

@@ -1,0 +1,147 @@
+"""ArduCopter with triswarm's script (``deploy/ardupilot/``): the companion's commands reach the
+motors and tilt servos through ``triswarm.lua``, which drives the outputs only in the companion's
+mode (TSW_MODE: GUIDED) and lets ArduPilot's own controllers take over otherwise. Idle on the
+ground the companion commands nothing: ArduPilot's own GUIDED holds its motors there.
+
+Set-up reads the script's parameters (TSW_MODE, TSW_FS_MODE, and the actuator scaling TSW_MAX_RPM,
+TSW_SRV_DEG): without them the script is not running, and the companion says so and does not fly.
+The EKF origin: ArduPilot's local positions are from its EKF origin, which it sets where it first
+has a GPS fix; a swarm needs one frame, so with the swarm's home given (``--home``) the companion
+sets the origin there (SET_GPS_GLOBAL_ORIGIN) while the flight controller has none, and otherwise
+adds the distance between the two to every position. Home (where RTL returns) is left alone: each
+drone's own.
+
+ArduCopter takes off by itself (GUIDED, NAV_TAKEOFF) before it hands the vehicle over: a vehicle it
+has not seen take off is landed to it, and it disarms one landed with its motors at rest.
+
+When the commands stop the script switches to TSW_FS_MODE (BRAKE) and reports TSW_STATE 2: a
+failsafe that fresh commands win back within TSW_FS_LAND_S, so the flight is not over yet.
+A firmware built for SITL (it has SIM_SPEEDUP) is a simulator: its clock is its physics'.
+"""
+
+from __future__ import annotations
+
+import time
+
+from pymavlink import mavutil
+
+from triswarm.protocol.autopilots import ARDUCOPTER_GUIDED, takeoff_commands
+from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.mavlink import mavlink
+
+from .base import Autopilot, AutopilotError, FcRequests, Say
+
+SCRIPT_STATE_FAILSAFE = 2
+TAKEOFF_TIMEOUT_S = 30.0
+"""ArduPilot's own takeoff reaches its height within this long [s, wall] or the launch failed."""
+ORIGIN_ASK_S = 1.0
+"""Asked for the EKF origin this long without an answer: it has none (yet)."""
+
+
+class ArduCopter(Autopilot):
+    name = "ardupilot"
+    SCALING_PARAMS = ("TSW_MAX_RPM", "TSW_SRV_DEG")
+    COMMANDS_WHILE_IDLE = False
+
+    def __init__(self, home: tuple[float, float, float] | None = None) -> None:
+        super().__init__()
+        self.home = home
+        self._control_mode = ARDUCOPTER_GUIDED
+        self.fs_mode = 17
+        self.script_state: int | None = None
+        """The script's TSW_STATE (2: it switched to TSW_FS_MODE because the commands stopped); None
+        before it said (it says once a second, and at once when it changes)."""
+        self.origin: tuple[float, float, float] | None = None
+        """The EKF origin: latitude, longitude [deg], altitude [m]."""
+
+    @classmethod
+    def matches(cls, autopilot: int, vehicle_type: int) -> bool:
+        return autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+
+    async def detect_simulator(self, fc: FcRequests) -> None:
+        try:
+            await fc.param("SIM_SPEEDUP")
+            self.simulator = True
+        except TimeoutError:
+            self.simulator = False
+
+    async def prepare(self, fc: FcRequests, say: Say) -> None:
+        try:
+            self._control_mode = round(await fc.param("TSW_MODE"))
+            self.fs_mode = round(await fc.param("TSW_FS_MODE"))
+        except TimeoutError:
+            raise AutopilotError("the flight controller has no TSW_MODE parameter: triswarm.lua is not running "
+                                 "(copy deploy/ardupilot/triswarm.lua to its scripts folder, set SCR_ENABLE 1, "
+                                 "reboot)") from None
+        await self._origin(fc, say)
+
+    async def _origin(self, fc: FcRequests, say: Say) -> None:
+        ask = lambda: fc.send(mavlink.MAVLink_command_long_message(  # noqa: E731
+            fc.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
+        if self.home is not None:
+            asked = time.monotonic()
+            await fc.wait("its EKF origin", lambda: self.origin is not None or time.monotonic() - asked > ORIGIN_ASK_S,
+                          ask, None)
+            if self.origin is None:  # none yet: the swarm's home is the origin
+                lat, lon, alt = self.home
+                set_origin = lambda: (fc.send(mavlink.MAVLink_set_gps_global_origin_message(  # noqa: E731
+                    fc.sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0)), ask())
+                await fc.wait("its EKF origin (set to the swarm's home)", lambda: self.origin is not None, set_origin, say)
+        await fc.wait("its EKF origin (a GPS fix)", lambda: self.origin is not None, ask, say)
+        if self.home is None:
+            say("no swarm home (--home): positions are the flight controller's, from its own EKF origin")
+            return
+        home = LocalProjection(*self.home)
+        north, east = home.to_local(self.origin[0], self.origin[1])
+        self.position_offset_e_m = (north, -east, self.origin[2] - self.home[2])
+        if max(map(abs, self.position_offset_e_m)) > 0.01:
+            say(f"its EKF origin is {north:.2f} m north, {east:.2f} m east and {self.origin[2] - self.home[2]:.2f} m "
+                "above the swarm's home: positions are moved by that")
+
+    def streams(self, rate_hz: float) -> list[tuple[int, float]]:
+        interval = 1e6 / rate_hz  # (ArduCopter has no HIGHRES_IMU or ODOMETRY stream to turn off)
+        return [(mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
+                (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6), (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)]
+
+    async def launch(self, fc, height_m: float, say: Say) -> None:
+        (set_mode, mode_params), (takeoff, takeoff_params) = takeoff_commands(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, height_m)
+        await _accepted(fc, "GUIDED", set_mode, *mode_params)
+        if not fc.armed:
+            await _accepted(fc, "arming", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        z0 = fc.last_sample.position_e_m[2] if fc.last_sample is not None else 0.0
+        await _accepted(fc, "takeoff", takeoff, *takeoff_params)
+        say(f"taking off to {height_m:g} m (ArduPilot's GUIDED takeoff)")
+        t0 = time.monotonic()
+
+        def up() -> bool:
+            s = fc.last_sample
+            if time.monotonic() - t0 > TAKEOFF_TIMEOUT_S:
+                raise RuntimeError(f"ArduPilot's takeoff did not reach {height_m:g} m in {TAKEOFF_TIMEOUT_S:g} s")
+            return not fc.landed and s is not None and s.position_e_m[2] - z0 >= 0.9 * height_m
+
+        await fc.wait(f"the takeoff to {height_m:g} m", up, None, say)
+
+    @property
+    def control_mode(self) -> int:
+        return self._control_mode
+
+    def mode_name(self, mode: int) -> str:
+        return mavutil.mode_mapping_acm.get(mode, f"mode {mode}")
+
+    def released(self, mode: int, critical: bool) -> str | None:
+        if mode == self._control_mode or (mode == self.fs_mode and self.script_state in (None, SCRIPT_STATE_FAILSAFE)):
+            return None  # (in its failsafe mode before the script said why: its next word decides)
+        return f"the flight controller is in {self.mode_name(mode)}"
+
+    def take(self, msg) -> None:
+        t = msg.get_type()
+        if t == "NAMED_VALUE_FLOAT" and msg.name.rstrip("\x00") == "TSW_STATE":
+            self.script_state = round(msg.value)
+        elif t == "GPS_GLOBAL_ORIGIN":
+            self.origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
+
+
+async def _accepted(fc, what: str, command: int, *params: float) -> None:
+    result = await fc.command(command, *params)
+    if result != mavlink.MAV_RESULT_ACCEPTED:
+        raise RuntimeError(f"the flight controller refused {what} ({result})")
