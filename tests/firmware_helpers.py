@@ -94,6 +94,19 @@ class Peer:
     def interval(self, msg_id: int, rate_hz: float, target: int = 1) -> None:
         self.command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / rate_hz, target=target)
 
+    def set_mode(self, mode: int, timeout_s: float) -> None:
+        """Into ArduPilot custom mode ``mode``, asked again every 2 s until its heartbeat says so (a
+        firmware can accept GUIDED before it has a position, and fall back to its mode before)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            mark = len(self.heard("HEARTBEAT"))
+            self.command(mavutil.mavlink.MAV_CMD_DO_SET_MODE, mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode)
+            time.sleep(2.0)
+            beats = [h for h in self.heard("HEARTBEAT")[mark:] if h.get_srcComponent() == 1]
+            if beats and all(h.custom_mode == mode for h in beats):
+                return
+            assert time.monotonic() < deadline, f"not in mode {mode} after {timeout_s} s: {self.texts()[-3:]}"
+
     def until_accepted(self, command: int, *params: float, timeout_s: float) -> None:
         """Ask again every 2 s until accepted (a firmware refuses while its pre-arm checks fail)."""
         deadline = time.monotonic() + timeout_s

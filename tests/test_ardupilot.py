@@ -85,8 +85,7 @@ def test_the_script_drives_the_outputs_only_armed_in_its_mode_and_lets_them_laps
             assert not any(o[:3] == expected[:3] or o[3:] == expected[3:] for o in disarmed), disarmed
 
             # armed, in the companion's mode (GUIDED): the commands drive all six outputs
-            gcs.until_accepted(MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_GUIDED,
-                               timeout_s=READY_S)
+            gcs.set_mode(ARDUCOPTER_GUIDED, timeout_s=READY_S)
             gcs.until_accepted(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 1, timeout_s=READY_S)
             with Commands(companion, controls):
                 wait_for(lambda: outputs(companion.heard("SERVO_OUTPUT_RAW")[-1]) == expected, 10,

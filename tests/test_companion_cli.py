@@ -70,6 +70,32 @@ def test_a_bad_option_is_one_sentence(tmp_path):
                                                                            "udpin:127.0.0.1:0"])
 
 
+@pytest.mark.parametrize("option,value,sentence", [
+    ("--fc-profile", "betaflight", "--fc-profile must be one of auto, triswarm, ardupilot, px4, got 'betaflight'"),
+    ("--home", "53.4,-2.2", "--home must be LAT,LON,ALT_M (three numbers), got '53.4,-2.2'"),
+    ("--home", "95,0,0", "--home 95,0,0: home latitude must be"),
+])
+def test_the_flight_controllers_kind_and_the_swarms_home_are_checked(option, value, sentence):
+    assert sentence in one_error(["--fc", "udpout:127.0.0.1:9", "--gcs", "udpin:127.0.0.1:0", option, value])
+
+
+def test_every_option_is_one_description_the_command_line_the_file_and_the_agents_options_share(tmp_path):
+    """The command line, the configuration file and CompanionOptions are made from OPTIONS: each
+    option's flag is in --help, its key is taken by the file, its field is the agent's."""
+    import dataclasses
+
+    from triswarm.companion.config import load_config
+    from triswarm.companion.options import OPTIONS, CompanionOptions
+
+    help_text = subprocess.run(COMPANION[:3] + ["--help"], capture_output=True, text=True, timeout=120).stdout
+    assert [f.name for f in dataclasses.fields(CompanionOptions)] == [o.name for o in OPTIONS]
+    for o in OPTIONS:
+        assert (o.metavar if o.name == "plan" else o.flag) in help_text, o.flag  # (the plan: the positional PLAN)
+    conf = tmp_path / "drone.toml"
+    conf.write_text('fc_profile = "ardupilot"\nhome = "53.4668,-2.2339,60"\n[zenoh]\nbase_port = 20000\n')
+    assert load_config(conf) == {"fc_profile": "ardupilot", "home": "53.4668,-2.2339,60", "zenoh_base_port": 20000}
+
+
 def test_a_bug_is_not_called_a_user_error(monkeypatch):
     """A ValueError from inside (not from reading what the operator wrote) ends as itself, not in exit status 2."""
     from typer.testing import CliRunner
