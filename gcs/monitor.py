@@ -13,11 +13,13 @@ from collections.abc import Iterable, Iterator, Mapping
 from typing import Annotated, Optional
 
 import typer
+from pymavlink import mavutil
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from triswarm.protocol.autopilots import is_ardupilot
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, mode_name
 
 from .errors import console, require_positive, user_errors
@@ -36,6 +38,13 @@ TEXT_CHARS = 40
 PLAIN_WIDTH = 200
 PHASES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding", 4: "fc lost"}
 """The companion's HEARTBEAT custom_mode (companion.PHASE_MODE)."""
+
+
+def _mode(heartbeat) -> str:
+    """A flight controller's mode by its name in its own autopilot's terms."""
+    if is_ardupilot(heartbeat.autopilot):
+        return mavutil.mode_mapping_acm.get(heartbeat.custom_mode, f"mode {heartbeat.custom_mode}")
+    return mode_name(heartbeat.custom_mode)
 
 
 def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[float, object]],
@@ -62,7 +71,7 @@ def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[flo
             "drone": i,
             "age_s": now - max(times) if times else None,
             "armed": armed,
-            "mode": None if hb is None else mode_name(hb.custom_mode),
+            "mode": None if hb is None else _mode(hb),
             "failsafe": bool(armed and hb.system_status == mavlink.MAV_STATE_CRITICAL) or _failsafe_said(fc_texts, now),
             "phase": None if comp_hb is None else PHASES.get(comp_hb.custom_mode, f"phase {comp_hb.custom_mode}"),
             "form_err_m": named.get("FORM_ERRM"),

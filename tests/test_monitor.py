@@ -94,6 +94,9 @@ def test_mode_and_phase_names():
                      (1, COMP_ONBOARD): heard((0.0, companion_heartbeat(1, phase)))})
             assert (r["mode"], r["phase"]) == (mode.name, name)
     assert one({})["mode"] is None and one({})["phase"] is None
+    ardupilot = fc_heartbeat(1, 4, True, mavlink.MAV_STATE_ACTIVE)  # ArduCopter names its modes its own way
+    ardupilot.autopilot = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert one({(1, COMP_AUTOPILOT): heard((0.0, ardupilot))})["mode"] == "GUIDED"
 
 
 def test_ages_values_position_and_last_text():
