@@ -7,10 +7,10 @@ SYSTEM_TIME offsets (Unix time - boot time). Each stream is timed and interpolat
 stamps, so attitude and position need not share an instant or a rate.
 
 The clock rule is the companions': a track runs on the drone's boot clock with the offset its
-SYSTEM_TIME gave last before the plan started (the companions take the flight controller's Unix
-time as it comes on the ground, and fly on the boot clock once the plan runs: a later step of the
-Unix time, someone setting the clock, does not move what was flown; an earlier one, a GPS fix
-correcting a clock that started from the computer's, does). Every sample of that boot, also those
+SYSTEM_TIME gave last before the plan started on it (the companions take the flight controller's
+Unix time as it comes on the ground, and fly on the boot clock once the plan runs: a later step of
+the Unix time, someone setting the clock forwards or back, does not move what was flown; an earlier
+one, a GPS fix correcting a clock that started from the computer's, does). Every sample of that boot, also those
 that came before, is its boot time plus that offset; a boot whose SYSTEM_TIMEs all came after the
 start runs on its first. A boot time that goes back by a second or more (``REBOOT_JUMP_US``) is a
 new boot. A boot without any SYSTEM_TIME is timed by its receive times.
@@ -78,8 +78,12 @@ class DroneSamples:
         for a boot without SYSTEM_TIME."""
         out = []
         for clocks in self.boot_clocks:
-            before = [offset for unix_s, offset in clocks if unix_s <= start_unix_s]
-            out.append(before[-1] if before else clocks[0][1] if clocks else math.nan)
+            offset = math.nan
+            for unix_s, new_offset in clocks:
+                if not math.isnan(offset) and unix_s - new_offset + offset >= start_unix_s:
+                    break  # (it came with the plan running on the clock then in force: in flight)
+                offset = new_offset
+            out.append(offset)
         return out
 
     def take(self, received_unix_s: float, msg) -> bool:

@@ -245,6 +245,7 @@ def test_a_close_its_peers_do_not_answer_ends_the_process_as_usual(caplog):
     assert "the session's close timed out (close operation timed out!)" in caplog.text
 
 
+@pytest.mark.realtime  # (Zenoh's lease, which ends the dead UDP link, is on the wall clock: a starved listener loses its transport)
 def test_estimates_still_arrive_when_the_udp_path_dies(tmp_path):
     """In a network namespace of the test's: agent 1's estimates flow on UDP (best effort), then every
     UDP packet is dropped. Zenoh goes on sending into the dead link until its lease ends it; the

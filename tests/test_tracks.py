@@ -208,3 +208,15 @@ def test_the_clock_rule():
     # a plan that started at 270, after the step: the first boot flew on the stepped clock (258.65)
     later = track(drone, 270.0)
     assert np.allclose(later.position_t_s[:5], [258.65 + b - 270.0 for b in (1.0, 1.1, 1.2, 1.3, 1.4)])
+
+
+def test_a_step_back_in_flight_to_before_the_start_moves_nothing():
+    """In flight means with the plan running on the clock then in force, whatever Unix time a later
+    SYSTEM_TIME says: a clock set back to before the start is a step in flight, not a clock of the
+    ground."""
+    drone = DroneSamples()
+    _system_time(drone, 200.0, 1000)  # offset 199
+    _sample(drone, 206.0, 7000, 1.0)  # plan time 1 s of a plan started at 205
+    _system_time(drone, 190.0, 8000)  # set 17 s back in flight: Unix 190, before the start
+    _sample(drone, 208.0, 9000, 2.0)
+    assert np.allclose(track(drone, 205.0).position_t_s, [1.0, 3.0])
