@@ -269,6 +269,7 @@ class FlightController:
             asyncio.ensure_future(self._measure_rates(rate_hz, None))
         else:
             attitude_hz = await self._measure_rates(rate_hz, say)
+        await ap.ready(self, say)
         self.output = ap.output(self.link.codec, self.sysid, self.max_rpm * math.pi / 30.0, math.radians(self.servo_deg))
         self.answers.holding = False
         # Set up and about to fly: keep the start-up objects out of every later garbage collection,

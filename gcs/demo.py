@@ -202,10 +202,14 @@ def demo(
             [i for i in ids if link.autopilot(i).landed_state != mavlink.MAV_LANDED_STATE_IN_AIR], "not in the air"), 30.0)
         _wait(stack, "time from the flight controllers' clock",
               lambda: "no SYSTEM_TIME heard" if math.isnan(link.fc_now()) else "", 30.0)
+        _step("local origins (logged: positions are judged from the swarm's home)",
+              command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_REQUEST_MESSAGE,
+                          [float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)]))
         start = link.fc_now() + 3.0
         _step("plan start", start_all(link, ids, pid, start))
         (run / "run.json").write_text(json.dumps({"start_unix_s": start, "plan_id": pid, "drones": n,
-                                                  "endpoints": stack.endpoints()}, indent=2) + "\n", encoding="utf-8")
+                                                  "home": stack.manifest["home"], "endpoints": stack.endpoints()},
+                                                 indent=2) + "\n", encoding="utf-8")
         with Progress(TextColumn("formation flight"), BarColumn(), TextColumn("t = {task.completed:5.1f} / {task.total:g} s"),
                       TextColumn("{task.fields[errors]}"), console=console) as bar:
             task = bar.add_task("", total=duration_s, errors="")

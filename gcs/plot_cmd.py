@@ -12,6 +12,8 @@ import numpy as np
 import typer
 from rich.table import Table
 
+from triswarm.protocol.frames import LocalProjection
+
 from .errors import UserError, console, require_positive, short_number, user_errors
 from .scenarios import load_plan
 from .tracks import on_grid
@@ -61,7 +63,7 @@ def plot(
         for name in RUN_FILES:
             if not (run / name).is_file():
                 raise UserError(f"{run}: not a run folder: it has no {name}")
-        start_unix_s, formation_end_s = _run_times(run / "run.json")
+        start_unix_s, formation_end_s, home_lla = _run_info(run / "run.json")
         if end_s is None:
             end_s = formation_end_s
         elif not math.isfinite(end_s):
@@ -69,7 +71,7 @@ def plot(
         plan = load_plan(str(run / "plan.toml"))
         design = plan.design
         try:
-            log = read_run_log(run / "gcs.tlog", plan.n_agents, start_unix_s, LOG_HZ)
+            log = read_run_log(run / "gcs.tlog", plan.n_agents, start_unix_s, LOG_HZ, home_lla)
         except OSError as exc:
             raise UserError(f"{run / 'gcs.tlog'}: cannot read it ({exc.strerror})") from None
 
@@ -113,8 +115,9 @@ def plot(
         raise typer.Exit(code=1)
 
 
-def _run_times(path: Path) -> tuple[float, float | None]:
-    """run.json's start_unix_s (the plan's start, Unix seconds) and formation_end_s (plan time, or None)."""
+def _run_info(path: Path) -> tuple[float, float | None, tuple[float, float, float] | None]:
+    """run.json's start_unix_s (the plan's start, Unix seconds), formation_end_s (plan time, or None)
+    and home (the swarm's: lat_deg, lon_deg, alt_m; or None)."""
     try:
         info = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
@@ -126,7 +129,17 @@ def _run_times(path: Path) -> tuple[float, float | None]:
         raise UserError(f"{path}: start_unix_s must be the plan's start as a number of Unix seconds, got {start!r}")
     if end is not None and not _number(end):
         raise UserError(f"{path}: formation_end_s must be a number of seconds of plan time, got {end!r}")
-    return float(start), None if end is None else float(end)
+    home = info.get("home")
+    if home is None:
+        return float(start), None if end is None else float(end), None
+    try:
+        home_lla = tuple(home[k] for k in ("lat_deg", "lon_deg", "alt_m"))
+        if not all(map(_number, home_lla)):
+            raise ValueError
+        LocalProjection(*home_lla)
+    except (TypeError, KeyError, ValueError):  # not an object of three numbers, or no place on Earth
+        raise UserError(f"{path}: home must be {{lat_deg, lon_deg, alt_m}}, a place on Earth, got {home!r}") from None
+    return float(start), None if end is None else float(end), home_lla
 
 
 def _number(x: object) -> bool:

@@ -44,8 +44,10 @@ class Recorder:
                 s.connect((link["host"], link["port"]))
             s.setblocking(False)
             self._socks[s] = v["sysid"]
-        self.samples = LiveTracks(sorted(self._socks.values()))
-        """Every vehicle's samples as they came (``tracks.py``)."""
+        home = manifest.get("home")
+        self.samples = LiveTracks(sorted(self._socks.values()),
+                                  None if home is None else (home["lat_deg"], home["lon_deg"], home["alt_m"]))
+        """Every vehicle's samples as they came (``tracks.py``), positions from the swarm's home."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -67,7 +69,11 @@ class Recorder:
 
     def _hello(self) -> None:
         interval = 1e6 / self.rate_hz
+        unknown_origin = set(self.samples.needing_origin())
         for s, sysid in self._socks.items():
+            if sysid in unknown_origin:
+                self._send(s, mavlink.MAVLink_command_long_message(sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                                   mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
             self._send(s, mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
             for msg_id, us in ((mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
                                (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6)):  # (ArduPilot streams none of them unasked)

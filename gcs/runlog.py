@@ -114,16 +114,18 @@ class RunLog:
     t_s: np.ndarray
     """(T,) uniform plan-time grid [s]."""
     position_m: np.ndarray
-    """(T, N, 3) paper earth frame (x north, y west, z up), local origin."""
+    """(T, N, 3) paper earth frame (x north, y west, z up), from the swarm's home if given, else each
+    flight controller's local origin."""
     euler_rad: np.ndarray
     """(T, N, 3) paper ZYX Euler angles (roll, pitch, yaw), wrapped to (-pi, pi]."""
     drones: list[DroneLog]
     tlog: TlogStats
 
 
-def read_run_log(path: Path, n_drones: int, start_unix_s: float, rate_hz: float = 50.0) -> RunLog:
+def read_run_log(path: Path, n_drones: int, start_unix_s: float, rate_hz: float = 50.0, home_lla=None) -> RunLog:
     """Drones 1..n_drones from a .tlog on a common grid at rate_hz, from plan time 0 (or the first
-    instant every drone's streams cover) to the last instant they all cover."""
+    instant every drone's streams cover) to the last instant they all cover; with the swarm's home
+    (latitude, longitude [deg], altitude [m]), positions from it (``tracks.py``)."""
     stats = TlogStats()
     samples = [DroneSamples() for _ in range(n_drones)]
     for received_unix_s, msg in read_tlog(Path(path).read_bytes(), stats):
@@ -132,7 +134,8 @@ def read_run_log(path: Path, n_drones: int, start_unix_s: float, rate_hz: float 
     tracks = []
     for i, drone in enumerate(samples):
         try:
-            tracks.append(track(drone, start_unix_s, f"drone {i + 1} (system {i + 1}, component {COMP_AUTOPILOT})"))
+            tracks.append(track(drone, start_unix_s, f"drone {i + 1} (system {i + 1}, component {COMP_AUTOPILOT})",
+                                home_lla))
         except TrackError as exc:
             raise RunLogError(f"{path}: {exc}") from None
     t_from, t_to = common_span_s(tracks)

@@ -14,6 +14,11 @@ one, a GPS fix correcting a clock that started from the computer's, does). Every
 that came before, is its boot time plus that offset; a boot whose SYSTEM_TIMEs all came after the
 start runs on its first. A boot time that goes back by a second or more (``REBOOT_JUMP_US``) is a
 new boot. A boot without any SYSTEM_TIME is timed by its receive times.
+
+Positions are from the flight controller's local origin (its EKF origin). Given the swarm's home, a
+boot whose GPS_GLOBAL_ORIGIN was heard has its positions moved by the distance from home to that
+origin (ArduPilot takes its first GPS fix as origin unless told otherwise), as the companions do; the
+last one heard in a boot holds for all of it (an EKF keeps its origin once set).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from triswarm.companion.telemetry import REBOOT_JUMP_US
+from triswarm.protocol.frames import geodetic_from_mavlink, origin_offset_e_m
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, attitude_to_paper, local_ned_to_paper
 from triswarm.protocol.metrics import wrap_angle
 
@@ -57,12 +63,18 @@ class DroneSamples:
     attitude: StreamSamples = field(default_factory=StreamSamples)
     position: StreamSamples = field(default_factory=StreamSamples)
     boot_clocks: list[list[tuple[float, float]]] = field(default_factory=list)
+    origins: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    """Per boot, its GPS_GLOBAL_ORIGIN as last heard: latitude, longitude [deg], altitude [m]."""
     newest_boot_s: float = -math.inf
     """The newest boot time heard in the current boot."""
     system_times: int = 0
     heard_unix_s: float = math.nan
     """The drone's clock as last heard: its current boot's offset + newest_boot_s, or as it was
     before a boot whose SYSTEM_TIME has not come yet."""
+
+    def needs_origin(self) -> bool:
+        """Its current boot has said no GPS_GLOBAL_ORIGIN yet."""
+        return max(0, len(self.boot_clocks) - 1) not in self.origins
 
     def _boot_of(self, boot_s: float) -> int:
         if not self.boot_clocks or boot_s < self.newest_boot_s - REBOOT_JUMP_US / 1e6:
@@ -87,8 +99,8 @@ class DroneSamples:
         return out
 
     def take(self, received_unix_s: float, msg) -> bool:
-        """Keep msg if it is one of the flight controller's ATTITUDE, LOCAL_POSITION_NED or
-        SYSTEM_TIME (with a Unix time); the caller has checked its system id."""
+        """Keep msg if it is one of the flight controller's ATTITUDE, LOCAL_POSITION_NED,
+        GPS_GLOBAL_ORIGIN or SYSTEM_TIME (with a Unix time); the caller has checked its system id."""
         kind = msg.get_type()
         if msg.get_srcComponent() != COMP_AUTOPILOT:
             return False
@@ -102,6 +114,12 @@ class DroneSamples:
                 clocks.append((msg.time_unix_usec / 1e6, offset))
             self.heard_unix_s = offset + self.newest_boot_s
             self.system_times += 1
+            return True
+        if kind == "GPS_GLOBAL_ORIGIN":
+            origin = geodetic_from_mavlink(msg.latitude, msg.longitude, msg.altitude)
+            if origin is None:
+                return False
+            self.origins[max(0, len(self.boot_clocks) - 1)] = origin  # (no boot time in it: of the boot heard last)
             return True
         if kind == "ATTITUDE":
             stream, value = self.attitude, attitude_to_paper(msg.roll, msg.pitch, msg.yaw)
@@ -117,7 +135,7 @@ class DroneSamples:
 
     def copy(self) -> "DroneSamples":
         return DroneSamples(self.attitude.copy(), self.position.copy(), [list(c) for c in self.boot_clocks],
-                            self.newest_boot_s, self.system_times, self.heard_unix_s)
+                            dict(self.origins), self.newest_boot_s, self.system_times, self.heard_unix_s)
 
 
 @dataclass(frozen=True)
@@ -146,14 +164,20 @@ def _timed(stream: StreamSamples, offsets_s: np.ndarray, start_unix_s: float) ->
     return t, np.asarray(stream.values).reshape(-1, 3)[first]
 
 
-def track(drone: DroneSamples, start_unix_s: float, name: str = "drone") -> Track:
-    """A drone's samples on plan time t = unix time - start_unix_s."""
+def track(drone: DroneSamples, start_unix_s: float, name: str = "drone", home_lla=None) -> Track:
+    """A drone's samples on plan time t = unix time - start_unix_s; with the swarm's home (latitude,
+    longitude [deg], altitude [m]), positions from it."""
     for kind, stream in zip(STREAMS, (drone.attitude, drone.position)):
         if not stream.values:
             raise TrackError(f"no {kind} from {name}")
     offsets = np.asarray(drone.offsets_at(start_unix_s), dtype=float)
     t_att, eta = _timed(drone.attitude, offsets, start_unix_s)
-    t_pos, pos = _timed(drone.position, offsets, start_unix_s)
+    position = drone.position
+    if home_lla is not None and drone.origins:
+        moves = {boot: np.asarray(origin_offset_e_m(home_lla, lla)) for boot, lla in drone.origins.items()}
+        position = StreamSamples(position.boot_s, position.received_unix_s, position.boot,
+                                 [v + moves[b] if b in moves else v for b, v in zip(position.boot, position.values)])
+    t_pos, pos = _timed(position, offsets, start_unix_s)
     return Track(t_att, np.unwrap(eta, axis=0), t_pos, pos,
                  "SYSTEM_TIME" if not np.isnan(offsets).all() else "received")
 
@@ -179,9 +203,11 @@ def on_grid(tracks: list[Track], t_s: np.ndarray) -> tuple[np.ndarray, np.ndarra
 class LiveTracks:
     """Samples fed as messages arrive (one thread), read as consistent snapshots (any thread)."""
 
-    def __init__(self, sysids) -> None:
+    def __init__(self, sysids, home_lla=None) -> None:
         self._lock = threading.Lock()
         self._drones = {s: DroneSamples() for s in sysids}
+        self.home_lla = home_lla
+        """The swarm's home (latitude, longitude [deg], altitude [m]), or None: positions as sent."""
 
     def take(self, sysid: int, received_unix_s: float, msg) -> bool:
         with self._lock:
@@ -197,4 +223,9 @@ class LiveTracks:
             return {s: d.copy() for s, d in self._drones.items()}
 
     def tracks(self, start_unix_s: float) -> dict[int, Track]:
-        return {s: track(d, start_unix_s, f"vehicle {s}") for s, d in sorted(self.snapshot().items())}
+        return {s: track(d, start_unix_s, f"vehicle {s}", self.home_lla) for s, d in sorted(self.snapshot().items())}
+
+    def needing_origin(self) -> list[int]:
+        """The vehicles whose current boot has said no GPS_GLOBAL_ORIGIN yet."""
+        with self._lock:
+            return [s for s, d in self._drones.items() if d.needs_origin()]

@@ -134,3 +134,20 @@ class LocalProjection:
         north = k * (self._cos0 * sl - self._sin0 * cl * math.cos(dlon)) * EARTH_RADIUS_M
         east = k * cl * math.sin(dlon) * EARTH_RADIUS_M
         return north, east
+
+
+def geodetic_from_mavlink(lat_e7: int, lon_e7: int, alt_mm: int) -> tuple[float, float, float] | None:
+    """A MAVLink position (degE7, degE7, mm) as latitude, longitude [deg], altitude [m]; None if it
+    is no place on Earth (a bad or hostile message)."""
+    lat_deg, lon_deg = lat_e7 / 1e7, lon_e7 / 1e7
+    if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 180.0):
+        return None
+    return lat_deg, lon_deg, alt_mm / 1000.0
+
+
+def origin_offset_e_m(home_lla, origin_lla) -> tuple[float, float, float]:
+    """Where a flight controller's local origin (its EKF origin: latitude, longitude [deg], altitude
+    [m]) is from the swarm's home, in the paper's earth frame [m] (x north, y west, z up): what to add
+    to its local positions to have them from home."""
+    north_m, east_m = LocalProjection(*home_lla).to_local(origin_lla[0], origin_lla[1])
+    return north_m, -east_m, float(origin_lla[2]) - float(home_lla[2])

@@ -207,6 +207,12 @@ def _home_position(fc, now_s, s):
         [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, _us(now_s))
 
 
+def _gps_global_origin(fc, now_s, s):
+    """Its local positions are from the swarm's home."""
+    return mavlink.MAVLink_gps_global_origin_message(int(round(fc.home.lat_deg * 1e7)), int(round(fc.home.lon_deg * 1e7)),
+                                                     int(round(fc.home.alt_m * 1000)), _us(now_s))
+
+
 def _actuator_output_status(fc, now_s, s):
     af = fc.airframe()
     omega, alpha = actuator_inverse(s.rho)
@@ -254,6 +260,7 @@ _BUILDERS = {
     mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: _battery_status,
     mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
+    mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: _gps_global_origin,
     mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: _actuator_output_status,
     mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: _system_time,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,

@@ -125,6 +125,100 @@ def test_arducopter_gives_the_vehicle_back_in_another_mode_but_not_in_its_script
     assert not ArduCopter.COMMANDS_WHILE_IDLE and TriswarmSitl.COMMANDS_WHILE_IDLE
 
 
+class OriginFc:
+    """ArduPilot's EKF origin as its GCS handlers and EKF3 keep it (GCS_Common.cpp set_ekf_origin,
+    NavEKF3::setOriginLLH, NavEKF3_core::InitialiseFilterBootstrap): a SET_GPS_GLOBAL_ORIGIN is taken
+    while there is none; the EKF starting forgets one set before; its first fix sets one if there is
+    none; SYS_STATUS says the AHRS enabled once the EKF has started. ``at_poll`` moves it on."""
+
+    sysid = 1
+
+    def __init__(self, ap, at_poll):
+        self.ap, self.at_poll, self.polls, self.origin, self.started, self.sets = ap, at_poll, 0, None, False, 0
+
+    def start(self):
+        if not self.started:
+            self.started, self.origin = True, None
+
+    def fix(self):
+        self.origin = self.origin or FIX
+
+    def send(self, msg):
+        if msg.get_type() == "SET_GPS_GLOBAL_ORIGIN":
+            self.sets += 1
+            self.origin = self.origin or (msg.latitude, msg.longitude, msg.altitude)
+        elif msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            ahrs = mavlink.MAV_SYS_STATUS_AHRS if self.started else 0
+            self.ap.take(mavlink.MAVLink_sys_status_message(mavlink.MAV_SYS_STATUS_AHRS, ahrs, 0, *[0] * 10))
+        elif msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and self.origin is not None:
+            self.ap.take(mavlink.MAVLink_gps_global_origin_message(*self.origin, 0))
+
+    async def wait(self, what, done, poke, say):
+        import asyncio
+
+        for _ in range(500):
+            self.polls += 1
+            self.at_poll(self, self.polls)
+            if done():
+                return
+            if poke is not None:
+                poke()
+            await asyncio.sleep(0.002)
+        raise AssertionError(f"still waiting for {what}")
+
+
+HOME = (53.4668, -2.2339, 60.0)
+FIX = (round(53.4667887 * 1e7), round(-2.2339188 * 1e7), 60_000)  # 1.26 m south and 1.24 m west of HOME
+
+
+def _fly_origin(at_poll, monkeypatch):
+    import asyncio
+
+    import triswarm.companion.autopilots.ardupilot as ardupilot
+
+    monkeypatch.setattr(ardupilot, "ORIGIN_ASK_S", 0.02)
+    ap = ArduCopter(home=HOME)
+    fc = OriginFc(ap, at_poll)
+    said = []
+    asyncio.run(ap._origin(fc, said.append))
+    asyncio.run(fc.wait("positions (an EKF started, with an origin)", lambda: fc.started and fc.origin, None, None))
+    asyncio.run(ap.ready(fc, said.append))
+    return ap, fc, said
+
+
+def test_the_ekf_origin_is_set_at_home_once_the_ekf_has_started(monkeypatch):
+    def ekf(fc, poll):
+        if poll > 30:
+            fc.start()
+        if poll > 60:
+            fc.fix()
+
+    ap, fc, said = _fly_origin(ekf, monkeypatch)
+    assert fc.origin == (round(HOME[0] * 1e7), round(HOME[1] * 1e7), 60_000) and fc.sets >= 1
+    assert ap.position_offset_e_m == pytest.approx((0.0, 0.0, 0.0), abs=1e-6) and not said
+
+
+@pytest.mark.parametrize("when", ["before the companion came", "after it was set at home"])
+def test_an_origin_the_ekf_took_from_its_fix_moves_every_position(monkeypatch, when):
+    """The EKF had its origin at its first fix, or forgot the one set at home and took its fix (it
+    initialised again): positions are moved by the distance from home, read once they flow."""
+    def ekf(fc, poll):
+        if when == "before the companion came":
+            fc.start()
+            fc.fix()
+        elif poll > 30:
+            fc.start()
+            if fc.sets and fc.origin != FIX:
+                fc.started = False  # (it initialised again: the origin set at home forgotten)
+                fc.start()
+                fc.fix()
+
+    ap, fc, said = _fly_origin(ekf, monkeypatch)
+    assert ap.position_offset_e_m == pytest.approx((-1.256, 1.25, 0.0), abs=0.01)
+    assert said[-1].startswith("its EKF origin is 1.26 m south, 1.24 m west and 0.00 m above the swarm's home")
+    assert (fc.sets == 0) == (when == "before the companion came")
+
+
 def test_px4_over_mavlink_is_refused_with_the_reason():
     import asyncio
 

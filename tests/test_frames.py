@@ -58,3 +58,20 @@ def test_local_projection():
         assert np.allclose(home.to_local(*home.to_geodetic(north, east)), [north, east], atol=1e-6)
     with pytest.raises(ValueError, match="latitude"):
         LocalProjection(float("nan"), 0.0)
+
+
+def test_an_origin_s_offset_from_home_is_the_geodesic_in_the_paper_s_frame():
+    home = frames.DEFAULT_HOME
+    lat, lon = LocalProjection(*home).to_geodetic(120.0, -35.0)  # 120 m north, 35 m west
+    assert frames.origin_offset_e_m(home, (lat, lon, home[2] + 4.0)) == pytest.approx((120.0, 35.0, 4.0), abs=1e-6)
+    assert frames.origin_offset_e_m(home, home) == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    # one degree of latitude is the Earth's radius times pi / 180
+    north_m = frames.origin_offset_e_m(home, (home[0] + 1.0, home[1], home[2]))[0]
+    assert north_m == pytest.approx(EARTH_RADIUS_M * math.pi / 180, rel=1e-9)
+
+
+def test_a_mavlink_position_that_is_no_place_on_earth_is_none():
+    assert frames.geodetic_from_mavlink(534668000, -22339000, 60000) == pytest.approx((53.4668, -2.2339, 60.0))
+    assert frames.geodetic_from_mavlink(900000000, 1800000000, 0) == (90.0, 180.0, 0.0)
+    for lat_e7, lon_e7 in ((2**31 - 1, 0), (0, -(2**31)), (-900000001, 0), (0, 1800000001)):
+        assert frames.geodetic_from_mavlink(lat_e7, lon_e7, 0) is None

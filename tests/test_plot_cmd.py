@@ -110,7 +110,8 @@ def make_run(run_dir: Path, offset_m: dict[int, np.ndarray]) -> int:
     run_dir.mkdir()
     plan_text = PAPER_PLAN_FILE.read_text().replace("drones = 6", f"drones = {DRONES}")
     (run_dir / "plan.toml").write_text(plan_text)
-    (run_dir / "run.json").write_text(json.dumps({"start_unix_s": START_UNIX_S, "drones": DRONES}))
+    (run_dir / "run.json").write_text(json.dumps({"start_unix_s": START_UNIX_S, "drones": DRONES,
+                                                  "home": {"lat_deg": 53.4668, "lon_deg": -2.2339, "alt_m": 60.0}}))
     return synthesize_tlog(run_dir / "gcs.tlog", load_plan(str(run_dir / "plan.toml")), offset_m)
 
 
@@ -225,6 +226,7 @@ def test_a_window_after_the_telemetry_is_not_judged(good_run):
     ("no folder", "no such run folder"),
     ("no run.json", "it has no run.json"),
     ("bad run.json", "start_unix_s must be"),
+    ("home off the Earth", "home must be {lat_deg, lon_deg, alt_m}, a place on Earth"),
     ("garbage tlog", "no ATTITUDE from drone 1"),
 ])
 def test_broken_run_folder_is_one_sentence(tmp_path, breakage, message):
@@ -238,6 +240,9 @@ def test_broken_run_folder_is_one_sentence(tmp_path, breakage, message):
         (run_dir / "run.json").unlink()
     if breakage == "bad run.json":
         (run_dir / "run.json").write_text(json.dumps({"start_unix_s": "soon"}))
+    if breakage == "home off the Earth":
+        (run_dir / "run.json").write_text(json.dumps({"start_unix_s": START_UNIX_S,
+                                                      "home": {"lat_deg": 95.0, "lon_deg": 0.0, "alt_m": 0.0}}))
     result = triswarm("plot", str(run_dir))
     assert result.returncode == 2, result.stdout + result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]

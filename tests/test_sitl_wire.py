@@ -55,6 +55,10 @@ def test_streams_commands_and_clean_exit(tmp_path):
         conn.mav.command_long_send(2, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_HOME_POSITION, 0, 0, 0, 0, 0, 0)
         home = conn.recv_match(type="HOME_POSITION", blocking=True, timeout=3)
         assert home.latitude == pytest.approx(manifest["home"]["lat_deg"] * 1e7, abs=500)
+        conn.mav.command_long_send(2, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0)
+        origin = conn.recv_match(type="GPS_GLOBAL_ORIGIN", blocking=True, timeout=3)  # (positions are from home)
+        assert (origin.latitude, origin.longitude, origin.altitude) == tuple(
+            round(manifest["home"][k] * scale) for k, scale in (("lat_deg", 1e7), ("lon_deg", 1e7), ("alt_m", 1e3)))
         # COMMAND_INT, an unsupported command, TIMESYNC
         conn.mav.command_int_send(2, 1, 0, M.MAV_CMD_REQUEST_MESSAGE, 0, 0, M.MAVLINK_MSG_ID_SYSTEM_TIME, 0, 0, 0, 0, 0, 0)
         ack = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=3)

@@ -18,6 +18,7 @@ from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.runlog import read_run_log
 from triswarm.gcs.tracks import DroneSamples, track
 from triswarm.protocol import frames
+from triswarm.protocol.frames import LocalProjection
 from triswarm.protocol.metrics import wrap_angle
 
 START_UNIX_S = 1_700_000_000.0
@@ -220,3 +221,74 @@ def test_a_step_back_in_flight_to_before_the_start_moves_nothing():
     _system_time(drone, 190.0, 8000)  # set 17 s back in flight: Unix 190, before the start
     _sample(drone, 208.0, 9000, 2.0)
     assert np.allclose(track(drone, 205.0).position_t_s, [1.0, 3.0])
+
+
+def _origin(drone: DroneSamples, lat_e7: int, lon_e7: int, alt_mm: int) -> bool:
+    msg = mavlink.MAVLink_gps_global_origin_message(lat_e7, lon_e7, alt_mm, 0)
+    msg.pack(mavlink.MAVLink(None, srcSystem=1, srcComponent=1))
+    return drone.take(0.0, msg)
+
+
+HOME = frames.DEFAULT_HOME
+
+
+def _origin_at(north_m: float, east_m: float, up_m: float) -> tuple[int, int, int]:
+    lat, lon = LocalProjection(*HOME).to_geodetic(north_m, east_m)
+    return round(lat * 1e7), round(lon * 1e7), round((HOME[2] + up_m) * 1000)
+
+
+def test_a_boot_s_origin_moves_its_positions_from_the_swarm_s_home():
+    """ArduPilot's positions are from its EKF origin (its first fix unless told otherwise): with the
+    swarm's home, each boot's are moved by the distance from home to the origin that boot said; a
+    boot that said none, or said no place on Earth, is left as it came."""
+    drone = DroneSamples()
+    assert drone.needs_origin()
+    _system_time(drone, 200.0, 1000)
+    assert _origin(drone, *_origin_at(3.0, 4.0, -1.5)) and not drone.needs_origin()
+    _sample(drone, 200.1, 1100, 1.0)
+    _sample(drone, 200.2, 10, 2.0)  # rebooted: no origin heard in this boot
+    assert drone.needs_origin()
+    assert not _origin(drone, 2**31 - 1, 0, 0) and drone.needs_origin()  # (214 degrees north)
+    _sample(drone, 200.3, 110, 3.0)
+    moved = track(drone, 200.0, home_lla=HOME).position_m
+    assert moved[0] == pytest.approx([1.0 + 3.0, -4.0, -1.5], abs=0.012)  # (1e-7 degrees is 1.1 cm)
+    assert np.allclose(moved[1:], [[2.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    assert np.allclose(track(drone, 200.0).position_m[:, 0], [1.0, 2.0, 3.0])  # (no home: as sent)
+
+
+def test_the_recorder_asks_each_vehicle_for_its_origin_until_it_says():
+    """Over loopback: the Recorder asks (REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) with its hello while a
+    vehicle has not said its origin, takes it, and asks no more."""
+    link = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    link.bind(("127.0.0.1", 0))
+    link.settimeout(5.0)
+    home = {"lat_deg": HOME[0], "lon_deg": HOME[1], "alt_m": HOME[2]}
+    manifest = {"home": home, "vehicles": [{"sysid": 1, "links": {"gcs": {"host": "127.0.0.1",
+                                                                           "port": link.getsockname()[1]}}}]}
+    parser = mavlink.MAVLink(None)
+
+    def hello() -> tuple[list[str], tuple]:
+        """What the Recorder sent up to and with its next heartbeat."""
+        kinds = []
+        while not kinds or kinds[-1] != "HEARTBEAT":
+            data, peer = link.recvfrom(4096)
+            for m in parser.parse_buffer(data) or []:
+                asks = m.get_type() == "COMMAND_LONG" and m.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+                kinds.append(f"ask {m.param1:g}" if asks else m.get_type())
+        return kinds, peer
+
+    with link, Recorder(manifest) as rec:
+        kinds, peer = hello()
+        assert f"ask {mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN}" in kinds
+        for msg in (mavlink.MAVLink_system_time_message(round(200e6), 1000),
+                    mavlink.MAVLink_gps_global_origin_message(*_origin_at(-2.0, 0.0, 0.0), 0),
+                    mavlink.MAVLink_local_position_ned_message(1100, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                    mavlink.MAVLink_attitude_message(1100, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)):
+            link.sendto(frame(1, msg), peer)
+        deadline = time.monotonic() + 10.0
+        while rec.samples.needing_origin() or not rec.samples.snapshot()[1].attitude.values:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        hello()  # (one that may have begun before the origin came)
+        assert not [k for k in hello()[0] if k.startswith("ask")]
+        assert rec.tracks(200.0)[1].position_m[0] == pytest.approx([-1.0, 0.0, 0.0], abs=0.012)

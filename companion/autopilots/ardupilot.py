@@ -7,9 +7,10 @@ Set-up reads the script's parameters (TSW_MODE, TSW_FS_MODE, and the actuator sc
 TSW_SRV_DEG): without them the script is not running, and the companion says so and does not fly.
 The EKF origin: ArduPilot's local positions are from its EKF origin, which it sets where it first
 has a GPS fix; a swarm needs one frame, so with the swarm's home given (``--home``) the companion
-sets the origin there (SET_GPS_GLOBAL_ORIGIN) while the flight controller has none, and otherwise
-adds the distance between the two to every position. Home (where RTL returns) is left alone: each
-drone's own.
+sets the origin there (SET_GPS_GLOBAL_ORIGIN) while the flight controller has none, and adds the
+distance between the two to every position, read once the positions flow (an EKF that initialises
+after the origin was set forgets it and takes its first fix instead). Home (where RTL returns) is
+left alone: each drone's own.
 
 ArduCopter takes off by itself (GUIDED, NAV_TAKEOFF) before it hands the vehicle over: a vehicle it
 has not seen take off is landed to it, and it disarms one landed with its motors at rest.
@@ -26,7 +27,7 @@ import time
 from pymavlink import mavutil
 
 from triswarm.protocol.autopilots import ARDUCOPTER_GUIDED, takeoff_commands
-from triswarm.protocol.frames import LocalProjection
+from triswarm.protocol.frames import geodetic_from_mavlink, origin_offset_e_m
 from triswarm.protocol.mavlink import mavlink
 
 from .base import Autopilot, AutopilotError, FcRequests, Say
@@ -53,6 +54,9 @@ class ArduCopter(Autopilot):
         before it said (it says once a second, and at once when it changes)."""
         self.origin: tuple[float, float, float] | None = None
         """The EKF origin: latitude, longitude [deg], altitude [m]."""
+        self.ahrs_started = False
+        """SYS_STATUS says its AHRS enabled: its EKF started (10 s ago: AP_AHRS::initialised), so an
+        origin set now is kept."""
 
     @classmethod
     def matches(cls, autopilot: int, vehicle_type: int) -> bool:
@@ -76,27 +80,46 @@ class ArduCopter(Autopilot):
         await self._origin(fc, say)
 
     async def _origin(self, fc: FcRequests, say: Say) -> None:
-        ask = lambda: fc.send(mavlink.MAVLink_command_long_message(  # noqa: E731
-            fc.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
-        if self.home is not None:
-            asked = time.monotonic()
-            await fc.wait("its EKF origin", lambda: self.origin is not None or time.monotonic() - asked > ORIGIN_ASK_S,
-                          ask, None)
-            if self.origin is None:  # none yet: the swarm's home is the origin
-                lat, lon, alt = self.home
-                set_origin = lambda: (fc.send(mavlink.MAVLink_set_gps_global_origin_message(  # noqa: E731
-                    fc.sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0)), ask())
-                await fc.wait("its EKF origin (set to the swarm's home)", lambda: self.origin is not None, set_origin, say)
-        await fc.wait("its EKF origin (a GPS fix)", lambda: self.origin is not None, ask, say)
+        """With the swarm's home: the EKF origin set there if the flight controller has none yet, once
+        its EKF has started (one that initialises afterwards forgets it; ``ready`` reads what holds)."""
+        if self.home is None:
+            return
+        asked = time.monotonic()
+        await fc.wait("its EKF origin", lambda: self.origin is not None or time.monotonic() - asked > ORIGIN_ASK_S,
+                      lambda: self._ask_origin(fc), None)
+        if self.origin is None:  # none yet: the swarm's home is the origin, once the EKF has started
+            lat, lon, alt = self.home
+
+            def set_origin() -> None:
+                if self.ahrs_started:
+                    fc.send(mavlink.MAVLink_set_gps_global_origin_message(
+                        fc.sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0))
+                    self._ask_origin(fc)
+                else:
+                    fc.send(mavlink.MAVLink_command_long_message(fc.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                                 mavlink.MAVLINK_MSG_ID_SYS_STATUS, 0, 0, 0, 0, 0, 0))
+
+            await fc.wait("its EKF origin (set to the swarm's home)", lambda: self.origin is not None, set_origin, say)
+
+    async def ready(self, fc: FcRequests, say: Say) -> None:
+        """The EKF origin as it holds once the position flows (EKF3 keeps it for the boot from then
+        on), and the distance from the swarm's home to it."""
+        self.origin = None
+        await fc.wait("its EKF origin", lambda: self.origin is not None, lambda: self._ask_origin(fc), say)
         if self.home is None:
             say("no swarm home (--home): positions are the flight controller's, from its own EKF origin")
             return
-        home = LocalProjection(*self.home)
-        north, east = home.to_local(self.origin[0], self.origin[1])
-        self.position_offset_e_m = (north, -east, self.origin[2] - self.home[2])
+        self.position_offset_e_m = origin_offset_e_m(self.home, self.origin)
+        north, west, up = self.position_offset_e_m
         if max(map(abs, self.position_offset_e_m)) > 0.01:
-            say(f"its EKF origin is {north:.2f} m north, {east:.2f} m east and {self.origin[2] - self.home[2]:.2f} m "
-                "above the swarm's home: positions are moved by that")
+            say(f"its EKF origin is {abs(north):.2f} m {'north' if north >= 0 else 'south'}, {abs(west):.2f} m "
+                f"{'west' if west >= 0 else 'east'} and {abs(up):.2f} m {'above' if up >= 0 else 'below'} the swarm's "
+                "home: positions are moved by that")
+
+    @staticmethod
+    def _ask_origin(fc: FcRequests) -> None:
+        fc.send(mavlink.MAVLink_command_long_message(fc.sysid, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                     mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
 
     def streams(self, rate_hz: float) -> list[tuple[int, float]]:
         interval = 1e6 / rate_hz  # (ArduCopter has no HIGHRES_IMU or ODOMETRY stream to turn off)
@@ -137,8 +160,10 @@ class ArduCopter(Autopilot):
         t = msg.get_type()
         if t == "NAMED_VALUE_FLOAT" and msg.name.rstrip("\x00") == "TSW_STATE":
             self.script_state = round(msg.value)
+        elif t == "SYS_STATUS":
+            self.ahrs_started = bool(msg.onboard_control_sensors_enabled & mavlink.MAV_SYS_STATUS_AHRS)
         elif t == "GPS_GLOBAL_ORIGIN":
-            self.origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
+            self.origin = geodetic_from_mavlink(msg.latitude, msg.longitude, msg.altitude) or self.origin
 
 
 async def _accepted(fc, what: str, command: int, *params: float) -> None:

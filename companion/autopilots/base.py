@@ -6,7 +6,8 @@ has said what it is (``registry``), it asks its ``Autopilot``:
 
 - the actuator scaling: what a control of 1 means (top rotor speed, servo limit);
 - whether it is a simulator, and one in lockstep (then its clock is no wall clock to hold against);
-- any set-up of its own (ArduPilot: its script's mode, the EKF origin);
+- any set-up of its own, before the streams and once they flow (ArduPilot: its script's mode, the
+  EKF origin);
 - which streams to ask for, at which intervals;
 - the output path: what carries the rotor speeds and tilts (``actuators.py``);
 - its modes: the one that hands control to the companion, how to enter it, their names, and when
@@ -96,6 +97,9 @@ class Autopilot(ABC):
     async def prepare(self, fc: FcRequests, say: Say) -> None:
         """Set-up of the kind's own, after the scaling and before the streams (AutopilotError: it
         cannot be flown)."""
+
+    async def ready(self, fc: FcRequests, say: Say) -> None:
+        """Set-up of the kind's own once its telemetry flows (AutopilotError: it cannot be flown)."""
 
     def streams(self, rate_hz: float) -> list[tuple[int, float]]:
         """(message id, interval [us]; -1: off) to ask for: the attitude and position at the control
