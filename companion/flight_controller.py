@@ -27,7 +27,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
+from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink, plausible_unix_us
 
 from .actuators import ActuatorControlTarget
 from .autopilots.base import Autopilot
@@ -159,8 +159,10 @@ class FlightController:
             self.critical = msg.system_status == mavlink.MAV_STATE_CRITICAL
             self.on_state()
         elif t == "SYSTEM_TIME":
-            if msg.time_unix_usec > 0:
+            if plausible_unix_us(msg.time_unix_usec):  # (0: it has no time yet)
                 self.clock.set_offset(msg.time_unix_usec, msg.time_boot_ms)
+            elif msg.time_unix_usec:
+                self.assembler.counters["clock_implausible"] += 1
         elif t == "TIMESYNC":
             self.timesync.take(msg)
         elif t == "EXTENDED_SYS_STATE":

@@ -33,6 +33,30 @@ HIGH_RATE = frozenset({mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_L
 UNSIGNED_FROM_GCS = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
                                mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST})
 """With a signing key: what the ground-station link takes unsigned (see the module's text)."""
+FROM_GCS_TO_FC = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
+                            mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST, mavlink.MAVLINK_MSG_ID_PARAM_SET,
+                            mavlink.MAVLINK_MSG_ID_PARAM_EXT_REQUEST_READ,
+                            mavlink.MAVLINK_MSG_ID_PARAM_EXT_REQUEST_LIST, mavlink.MAVLINK_MSG_ID_PARAM_EXT_SET,
+                            mavlink.MAVLINK_MSG_ID_COMMAND_LONG, mavlink.MAVLINK_MSG_ID_COMMAND_INT,
+                            mavlink.MAVLINK_MSG_ID_COMMAND_ACK, mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_LIST,
+                            mavlink.MAVLINK_MSG_ID_MISSION_COUNT, mavlink.MAVLINK_MSG_ID_MISSION_ITEM,
+                            mavlink.MAVLINK_MSG_ID_MISSION_ITEM_INT, mavlink.MAVLINK_MSG_ID_MISSION_REQUEST,
+                            mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink.MAVLINK_MSG_ID_MISSION_ACK,
+                            mavlink.MAVLINK_MSG_ID_MISSION_CLEAR_ALL, mavlink.MAVLINK_MSG_ID_MISSION_SET_CURRENT,
+                            mavlink.MAVLINK_MSG_ID_MISSION_REQUEST_PARTIAL_LIST,
+                            mavlink.MAVLINK_MSG_ID_MISSION_WRITE_PARTIAL_LIST,
+                            mavlink.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL, mavlink.MAVLINK_MSG_ID_TIMESYNC,
+                            mavlink.MAVLINK_MSG_ID_PING, mavlink.MAVLINK_MSG_ID_REQUEST_DATA_STREAM,
+                            mavlink.MAVLINK_MSG_ID_SET_MODE, mavlink.MAVLINK_MSG_ID_LOG_REQUEST_LIST,
+                            mavlink.MAVLINK_MSG_ID_LOG_REQUEST_DATA, mavlink.MAVLINK_MSG_ID_LOG_ERASE,
+                            mavlink.MAVLINK_MSG_ID_LOG_REQUEST_END, mavlink.MAVLINK_MSG_ID_GPS_RTCM_DATA,
+                            mavlink.MAVLINK_MSG_ID_GPS_INJECT_DATA})
+"""What the companion forwards from a ground station to its flight controller: what MAVLink's tools
+(QGroundControl, MAVProxy, MAVSDK) need to see and configure it (heartbeats, parameters, commands,
+missions, MAVLink FTP, time sync, stream requests, logs, GPS corrections). Kept back: anything that
+flies the vehicle (setpoints, actuator targets, manual control, RC overrides: the companion flies
+it), sets its clock (SYSTEM_TIME: a plan starts on the flight controller's own), its signing
+(SETUP_SIGNING) or opens its shell (SERIAL_CONTROL), and everything else (``docs/companion.md``)."""
 GCS_LINK_ID = 1  # the ground-station link's id in the signatures it sends
 HEALTH_VALUES = (("LOOP_HZ", "loop_rate_hz"), ("JIT_P99MS", "jitter_p99_ms"), ("LAT_P99MS", "latency_p99_ms"),
                  ("MISSES", "deadline_misses"), ("TLM_AGEMS", "telemetry_age_ms"), ("FORM_ERRM", "formation_error_m"),
@@ -158,11 +182,18 @@ class GroundStation:
             if not self.shed.take(link.peer, now):
                 link.counters["shed_frames"] += 1
                 continue
+            if msg.get_srcSystem() == self.a.id:  # (a ground station speaking as this vehicle: the
+                link.counters["refused_own_system"] += 1  # router would send its flight controller's traffic there)
+                continue
             self.router.learn(link, msg)
             for dest in self.router.destinations(link, msg, links):
-                if dest is fc_link and not self._fc_forward.take(now):
-                    link.counters["shed_fc_forward"] += 1
-                    continue
+                if dest is fc_link:
+                    if msg.get_msgId() not in FROM_GCS_TO_FC:
+                        link.counters["kept_from_fc"] += 1
+                        continue
+                    if not self._fc_forward.take(now):
+                        link.counters["shed_fc_forward"] += 1
+                        continue
                 dest.write(msg.get_msgbuf())
             if self.router.for_me(msg):
                 self._for_me(link, msg)

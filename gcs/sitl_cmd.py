@@ -140,7 +140,7 @@ def sitl_up(
                           "Ctrl-C stops.", soft_wrap=True)
 
         # (a --rate-hz or --param the vehicles refuse: ParameterError; a port that cannot be opened: LinkOpenError)
-        result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True)))
+        result = asyncio.run(run_sitl(opts, on_ready=ready, say=lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True, markup=False)))
         if stats is not None:
             write("--stats", stats, result)
     if not quiet:
@@ -214,7 +214,7 @@ def _ardupilot_up(n, first_id, manifest, home, physics_hz, spacing_m, stats, dur
                 console.print("pymavlink: mavutil.mavlink_connection(<link>); MAVSDK: tcp://HOST:PORT. Ctrl-C stops.",
                               soft_wrap=True)
 
-        say = (lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True))
+        say = (lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True, markup=False))
         try:
             result = asyncio.run(run_ardupilot(opts, on_ready=ready, say=say))
         except FirmwareError as exc:

@@ -12,6 +12,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from triswarm.sitl.processes import signal_group, spawn
+
 
 def _below_ephemeral() -> tuple[int, int]:
     """Ports to pick listening ports from: below the kernel's ephemeral range, which it hands to
@@ -113,7 +115,7 @@ class Stack:
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         log = (self.workdir / "logs" / f"{name}.log").open("a")
         self._logs.append(log)
-        proc = subprocess.Popen(self.wrap + cmd, stdout=log, stderr=subprocess.STDOUT)
+        proc = spawn(self.wrap + cmd, stdout=log, stderr=subprocess.STDOUT)  # (ends with this process)
         self.procs[name] = proc
         return proc
 
@@ -258,10 +260,10 @@ def stop_in_turn(groups: list[list[subprocess.Popen]], timeout_s: float = 15.0, 
     for group in groups:
         for p in group:
             if p.poll() is None:
-                p.send_signal(sig)
+                signal_group(p, sig)
         for p in group:
             try:
                 p.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
-                p.kill()
+                signal_group(p, signal.SIGKILL)
                 p.wait(timeout=5)

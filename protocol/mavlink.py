@@ -84,6 +84,16 @@ NEW_STREAM_LAG = 6_000_000  # a new stream may start at most a minute behind our
 SIGNATURE_REFUSED = "Invalid signature"  # pymavlink's reason (BAD_DATA) for a frame its signing refused
 
 
+UNIX_TIME_LATEST_S = 4102444800  # 1 January 2100 GMT
+
+
+def plausible_unix_us(time_unix_usec: int) -> bool:
+    """A Unix time [us] a flight controller may take as its clock (SYSTEM_TIME): from 2015 (no GPS
+    time comes earlier) to 2100, so every stamp made from it fits its field for the life of the
+    process (``time_unix_usec = 2**64 - 1`` would overflow the next SYSTEM_TIME sent)."""
+    return SIGNING_EPOCH_UNIX_S * 1_000_000 <= time_unix_usec < UNIX_TIME_LATEST_S * 1_000_000
+
+
 def signing_key(data: bytes, source: str) -> bytes:
     """The key in a signing key file's content ``data``: the 32 bytes of secret, either as they are
     (a 32-byte binary file) or as 64 hexadecimal digits (a text file; surrounding white space is

@@ -16,11 +16,11 @@ import numpy as np
 
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe, ParameterError
 from triswarm.protocol.frames import LocalProjection
-from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink
+from triswarm.protocol.mavlink import ACTUATOR_GROUP, CustomMode, decode_actuators, mavlink, plausible_unix_us
 
 from . import telemetry
 from .profiles import TRISWARM, Profile
-from .telemetry import STREAM_CODE, STREAMS, Snapshot
+from .telemetry import STREAM_CODE, STREAMS, Snapshot, _us
 
 LINKS = ("companion", "gcs")
 LINK_PREFIX = {"companion": "SC", "gcs": "SG"}
@@ -332,6 +332,9 @@ class FlightController:
         if msg.group_mlx != ACTUATOR_GROUP:
             self.counters["drop_actuator_group"] += 1
             return []
+        if msg.time_usec > _us(self.clock_s(now_s)) + 1000:  # (1 ms: stamps are whole milliseconds)
+            self.counters["drop_actuator_from_the_future"] += 1  # (an answer to a state not yet sent)
+            return []
         if link == "companion":
             self.answered_us = max(self.answered_us, msg.time_usec)
         if all(math.isnan(c) for c in msg.controls[:6]):  # an answer that commands nothing (lockstep)
@@ -363,9 +366,13 @@ class FlightController:
     def _on_system_time(self, msg, link, now_s, snap):
         """Someone sets the clock (as autopilots take it from a ground station): its Unix time steps
         to ``time_unix_usec`` now, a whole millisecond; its boot time runs on."""
-        if msg.time_unix_usec > 0:
-            self.boot_unix_s = round(msg.time_unix_usec / 1000.0 - now_s * 1000.0) / 1000.0
-            self.counters["clock_set"] += 1
+        if msg.time_unix_usec == 0:
+            return []  # (the sender has no time)
+        if not plausible_unix_us(msg.time_unix_usec):
+            self.counters["drop_clock_implausible"] += 1
+            return []
+        self.boot_unix_s = round(msg.time_unix_usec / 1000.0 - now_s * 1000.0) / 1000.0
+        self.counters["clock_set"] += 1
         return []
 
     def _on_timesync(self, msg, link, now_s, snap):
@@ -461,6 +468,8 @@ class FlightController:
                 result, reason = self.disarm(now_s, snap, force)
         elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             result, reason = self._set_interval(int(p[0]), p[1], link)
+        elif command == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL and not 0 <= p[0] <= 0xFFFF:
+            result, reason = mavlink.MAV_RESULT_DENIED, f"no message id {p[0]:g}"  # (MESSAGE_INTERVAL's is 16 bits)
         elif command == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
             msg_id = int(p[0])
             rate = self.stream_rate_hz(link, msg_id)

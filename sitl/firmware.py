@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .processes import signal_group, spawn
+
 DEPLOY_DIR = Path(__file__).resolve().parents[1] / "deploy" / "ardupilot"
 """The vehicle files a user loads onto a real flight controller: the simulated ones take them unchanged."""
 SCRIPT, PARAMS = "triswarm.lua", "triswarm.parm"
@@ -140,16 +142,16 @@ class Firmware:
                 "--defaults", f"{DEPLOY_DIR / PARAMS},{s.run_dir / 'sitl.parm'}"]
 
     def start(self) -> None:
-        """Start it in its run folder, in a process group of its own; return once it listens on its
-        ports (FirmwareError if it would not)."""
+        """Start it in its run folder, in a process group of its own that ends with this process's
+        thread (``processes.spawn``); return once it listens on its ports (FirmwareError if it would
+        not)."""
         self.prepare()
         for _ in range(3):
             ports = dict(zip((SERIAL_GCS, SERIAL_SPARE, SERIAL_COMPANION), free_tcp_ports(3)))
             self._log = self.log_path.open("a")
             try:
-                self.proc = subprocess.Popen(self.command(ports), cwd=self.spec.run_dir, stdout=self._log,
-                                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                             start_new_session=True)
+                self.proc = spawn(self.command(ports), cwd=self.spec.run_dir, stdout=self._log,
+                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
             except OSError as exc:
                 raise FirmwareError(f"cannot start {self.spec.binary}: {exc.strerror or exc}") from None
             if self._wait_bound(ports):
@@ -187,10 +189,7 @@ class Firmware:
         proc, self.proc = self.proc, None
         if proc is not None:
             for sig, wait_s in ((signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
-                try:
-                    os.killpg(proc.pid, sig)
-                except ProcessLookupError:
-                    break
+                signal_group(proc, sig)
                 try:
                     proc.wait(timeout=wait_s)
                     break

@@ -121,6 +121,7 @@ class SitlServer:
         self._wall_sim0 = 0.0
         self.wall_elapsed = 0.0
         self.exceptions = 0
+        self._bugs_told: set[tuple[str, str]] = set()
         self._lockstep_running = False
         self._advance_pending = False
         self._wall_start_mono = time.monotonic()
@@ -218,9 +219,8 @@ class SitlServer:
         for msg in msgs:
             try:
                 replies.extend(fc.handle(msg, link.name, self.swarm.time_s, snap))
-            except Exception:
-                self.exceptions += 1
-                fc.counters["drop_handler_error"] += 1
+            except Exception:  # a bug: this vehicle loses the message, no vehicle its flight
+                self._bug(fc, f"handling {msg.get_type()}", "drop_handler_error")
         if fc.airframe_changed:
             self.swarm.apply_airframe(link.vehicle)
         if self.lockstep is not None and link.name == "companion":
@@ -244,6 +244,20 @@ class SitlServer:
         if advance:
             self._advance()
 
+    def _bug(self, fc, doing: str, counter: str) -> None:
+        """An exception where none should be: counted (``handler_exceptions``, and the vehicle's
+        ``counter``), its traceback said once per place and kind (the first 20); the other vehicles
+        fly on."""
+        import traceback
+
+        self.exceptions += 1
+        fc.counters[counter] += 1
+        told = (doing, traceback.format_exc(limit=0))
+        if told not in self._bugs_told and len(self._bugs_told) < 20:
+            self._bugs_told.add(told)
+            self.say(f"internal error (a bug) in vehicle {fc.sysid} {doing}; the message is dropped:\n"
+                     f"{traceback.format_exc()}", True)
+
     # -- outgoing ---------------------------------------------------------------------------
 
     def _flush_outbox(self, i: int) -> None:
@@ -260,7 +274,11 @@ class SitlServer:
             peers = link.live_peers(now_wall)
             if not peers:
                 continue
-            frame = msg.pack(link.codec)
+            try:
+                frame = msg.pack(link.codec)
+            except Exception:  # a bug (a value out of its field's range): this message lost, not the vehicles
+                self._bug(self.swarm.fcs[i], f"packing {msg.get_type()}", "drop_unpackable")
+                continue
             self._sendto(link, frame, peers)
 
     def _sendto(self, link: Link, data: bytes, peers) -> None:
@@ -387,7 +405,11 @@ class SitlServer:
         data = bytearray()
         key_ids, key_us = self._key_ids.get(i, HIGH_RATE_IDS), -1
         for msg_id, msg in msgs:
-            data += msg.pack(link.codec)
+            try:
+                data += msg.pack(link.codec)
+            except Exception:  # a bug (a value out of its field's range): this message lost, not the vehicles
+                self._bug(self.swarm.fcs[i], f"packing {msg.get_type()}", "drop_unpackable")
+                continue
             self.sent[msg_id] += 1
             if msg_id in key_ids:
                 key_us = max(key_us, msg.time_boot_ms * 1000 if hasattr(msg, "time_boot_ms") else msg.time_usec)

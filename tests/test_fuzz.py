@@ -10,9 +10,12 @@ import pytest
 from .fuzz.mavlink_faces import fuzz_fc, fuzz_gcs
 from .fuzz.missions import fuzz_missions
 from .fuzz.plan_files import fuzz_plan_files
+from .fuzz.stack_faces import FACES as STACK_FACES, fuzz_stack
 from .fuzz.zenoh_face import fuzz_zenoh
 
 N = 3000
+N_VALUES = 1500
+"""Hostile values per stack face: every message of the dialect at least once, several times over."""
 
 
 def judged(report, *must_move: str):
@@ -58,3 +61,15 @@ def test_plan_files():
     for kind in ("random_document", "mutated_plan", "mutated_text"):
         assert report.counters.get(f"{kind}.refused", 0) > 0, report.text()
     assert report.counters.get("mutated_plan.accepted", 0) > 0, report.text()
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.parametrize("face", STACK_FACES)
+def test_valid_messages_with_hostile_values(tmp_path, face):
+    """Every message of the dialect with its fields at their boundaries, commands and parameter
+    sets with hostile values, at the SITL's two links and through the companion's routing: nothing
+    raises, both vehicles answer throughout, the other vehicle is untouched, and afterwards the two
+    drones fly a plan within its bounds."""
+    report = fuzz_stack(face, N_VALUES, tmp_path)
+    assert report.inputs == N_VALUES and not report.problems, report.text()
+    assert report.sent["one_boundary"] >= 210 and report.sent["command"] > 0 and report.sent["param_set"] > 0

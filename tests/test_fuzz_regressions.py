@@ -6,6 +6,7 @@ import asyncio
 import logging
 import math
 import socket
+import time
 from collections import Counter
 import tomllib
 from pathlib import Path
@@ -136,3 +137,82 @@ def test_a_plan_of_too_many_drones_is_a_plan_error():
         plan_from_dict(spec, "p.toml")
     spec["drones"] = 1000
     assert plan_from_dict(spec, "p.toml").n_agents == 1000
+
+
+def _sitl_vehicle():
+    from triswarm.sitl.swarm import SitlSwarm
+
+    sw = SitlSwarm(1)
+    return sw, sw.fcs[0]
+
+
+def _from_gcs(msg):
+    msg.pack(new_codec(255, 190))  # (sets its source, as a parsed message has it)
+    return msg
+
+
+def test_a_clock_set_beyond_what_its_stamps_hold_is_refused():
+    """SYSTEM_TIME with time_unix_usec = 2**64 - 1 was taken as the clock: the next SYSTEM_TIME the
+    SITL packed overflowed, and the process went down with every vehicle in it."""
+    sw, fc = _sitl_vehicle()
+    codec = new_codec(1, 1)
+    for hostile in (2**64 - 1, 2**63, 1, 10**15):  # (the last: 1970-01-12, before any GPS time)
+        fc.handle(_from_gcs(M.MAVLink_system_time_message(hostile, 0)), "gcs", sw.time_s, sw.snapshot(0))
+        fc.build(M.MAVLINK_MSG_ID_SYSTEM_TIME, sw.time_s + 3600.0 * 24 * 365, sw.snapshot(0)).pack(codec)
+    assert fc.counters["drop_clock_implausible"] == 4 and fc.counters["clock_set"] == 0
+    fc.handle(_from_gcs(M.MAVLink_system_time_message(1_800_000_000_000_000, 0)), "gcs", sw.time_s, sw.snapshot(0))
+    assert fc.counters["clock_set"] == 1
+    assert fc.build(M.MAVLINK_MSG_ID_SYSTEM_TIME, sw.time_s, sw.snapshot(0)).time_unix_usec // 10**6 == 1_800_000_000
+
+
+def test_a_message_interval_asked_of_an_id_beyond_16_bits_is_denied():
+    """MESSAGE_INTERVAL's message id is 16 bits: an answer about message 70000 could not be packed."""
+    sw, fc = _sitl_vehicle()
+    codec = new_codec(1, 1)
+    for msg_id in (70000.0, -1.0, 65535.0):
+        replies = fc.handle(_from_gcs(M.MAVLink_command_long_message(1, 1, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, msg_id,
+                                                                    0, 0, 0, 0, 0, 0)), "gcs", sw.time_s, sw.snapshot(0))
+        for out in replies:
+            out.msg.pack(codec)
+        ack = next(o.msg for o in replies if o.msg.get_type() == "COMMAND_ACK")
+        assert (ack.result == M.MAV_RESULT_DENIED) == (msg_id != 65535.0), (msg_id, ack.result)
+
+
+def test_an_actuator_command_answering_a_state_not_yet_sent_is_dropped():
+    """A companion's time_usec says which state it answers; one from the future (2**64 - 1) would
+    have answered every state to come, and a lockstep clock would no longer wait for that vehicle."""
+    sw, fc = _sitl_vehicle()
+    future = M.MAVLink_set_actuator_control_target_message(2**64 - 1, 0, 1, 1, [0.0] * 8)
+    future.pack(new_codec(1, 191))
+    fc.handle(future, "companion", sw.time_s, sw.snapshot(0))
+    assert fc.counters["drop_actuator_from_the_future"] == 1 and fc.answered_us == -1
+
+
+def test_the_routing_keeps_back_what_a_ground_station_may_not_send_the_flight_controller(tmp_path):
+    """Through a real companion: a ground station's SYSTEM_TIME (it would set the clock plans start
+    on) and setpoints are kept back and counted; a parameter read reaches the flight controller; a
+    frame that claims to come from the vehicle's own system is refused before routing."""
+    from .fuzz.target import CompanionUnderFuzz
+
+    with CompanionUnderFuzz(tmp_path, 1) as cuf:
+        station, fc = cuf.station, cuf.fc
+        got = []
+        fc.on_message = lambda m, on=fc.on_message: (got.append(m), on(m))  # (in its reader thread)
+        kept = [M.MAVLink_system_time_message(2**64 - 1, 0),
+                M.MAVLink_set_position_target_local_ned_message(0, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+                M.MAVLink_manual_control_message(1, 1000, 0, 0, 0, 0)]
+        for msg in kept:
+            station.send_msg(msg)
+        spoofed = new_codec(1, 1)
+        station.send(M.MAVLink_param_request_read_message(1, 1, b"SIM_LOCKSTEP", -1).pack(spoofed))
+        station.send_msg(M.MAVLink_param_request_read_message(1, 1, b"MOT_MAX_RPM", -1))
+        assert station.probe(1)
+        deadline = time.monotonic() + 10.0
+        while station.heard["PARAM_VALUE"] < 2 and time.monotonic() < deadline:  # (the probe's, and the fc's)
+            time.sleep(0.05)
+        reached = [(m.get_srcSystem(), m.get_type()) for m in got if m.get_srcComponent() != COMP_ONBOARD]
+        # (the station's heartbeats reach it too; the spoofed read does not)
+        assert set(reached) <= {(255, "HEARTBEAT"), (255, "PARAM_REQUEST_READ")}, reached
+        assert reached.count((255, "PARAM_REQUEST_READ")) == 1, reached
+        gcs = cuf.stop()["links"]["gcs"]
+    assert gcs["kept_from_fc"] == len(kept) and gcs["refused_own_system"] == 1

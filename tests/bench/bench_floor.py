@@ -57,7 +57,7 @@ def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: flo
                     if zenoh:
                         bus.take_estimates()
                         bus.publish_estimate(agent, xi, m.time_boot_ms / 1000.0, AgentStatus.FLYING)
-                    link.send(mavlink.MAVLink_set_actuator_control_target_message(int(time.time() * 1e6), 0, agent, 1,
+                    link.send(mavlink.MAVLink_set_actuator_control_target_message(m.time_boot_ms * 1000, 0, agent, 1,
                                                                                   controls))
 
         link.open(loop, on_fc)

@@ -18,6 +18,8 @@ kinds, drawn at random:
 - ``unknown_id``: a well-formed frame of a message id the dialect does not know;
 - ``mavlink1``: a valid frame in MAVLink 1;
 - ``several``: two to five of the above in one datagram;
+- ``hostile_values`` (with a ``target``): a valid message of any id of the dialect with hostile
+  values in its fields, or a command or parameter set with them (``values.HostileValues``);
 
 and, for a face with a signing key: ``signed`` (a good signature), ``signed_wrong_key``,
 ``signed_bad_signature`` (a signed frame with its signature altered), ``signed_replay`` (a frame
@@ -105,9 +107,14 @@ class Mutator:
     (signed as link ``link_id``: a stream of its own for the companion)."""
 
     def __init__(self, rng: random.Random, templates: list, codec, *, key: bytes | None = None, link_id: int = 7,
-                 weights: dict[str, float] | None = None) -> None:
+                 weights: dict[str, float] | None = None, target: tuple[int, int] | None = None,
+                 param_names: tuple[str, ...] = ()) -> None:
+        from .values import HostileValues
+
         self.rng, self.templates, self.codec = rng, templates, codec
-        self.kinds = list(BASE_KINDS) + (list(SIGNED_KINDS) if key is not None else [])
+        self.kinds = (list(BASE_KINDS) + (list(SIGNED_KINDS) if key is not None else [])
+                      + (["hostile_values"] if target is not None else []))
+        self.hostile = None if target is None else HostileValues(rng, codec, target, param_names)
         self.weights = [(weights or {}).get(k, 1.0) for k in self.kinds]
         self.signed_sent: deque[bytes] = deque(maxlen=64)
         if key is not None:
@@ -187,6 +194,8 @@ class Mutator:
             if rng.random() < 0.5:
                 msg = extreme(rng, msg)
             return msg.pack(self.codec, force_mavlink1=True)
+        if kind == "hostile_values":
+            return self.hostile()[1]
         if kind == "several":
             return b"".join(self.make(rng.choice(BASE_KINDS[:-1])) for _ in range(rng.randint(2, 5)))
         if kind == "signed":

@@ -20,6 +20,7 @@ from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink as M
 from .mav import LinkModel, Mutator
 from .report import Clock, Report, crashes, drop_keys, kernel_drops
 from .target import CompanionUnderFuzz
+from .values import COMPANION_PARAMS
 
 BATCH = 64
 AGENT = 1
@@ -107,7 +108,8 @@ def fuzz_gcs(n: int, workdir: Path, seed: int = 1, signed: bool = False) -> Repo
         station = cuf.station
         model = LinkModel(AGENT, COMP_ONBOARD, key, UNSIGNED_FROM_GCS.__contains__ if signed else None)
         station.tap = model.feed  # (from here on; what came before is in neither count)
-        mutator = Mutator(random.Random(seed), gcs_templates(station.codec), station.codec, key=key)
+        mutator = Mutator(random.Random(seed), gcs_templates(station.codec), station.codec, key=key,
+                          target=(AGENT, COMP_ONBOARD), param_names=COMPANION_PARAMS)
         _fuzz(report, station, mutator, n, lambda: station.probe(AGENT))
         if not (cuf.alive() and station.probe(AGENT) and station.heartbeat_answered(AGENT)):
             report.problems.append("the companion does not answer a valid request after the fuzz")
@@ -122,7 +124,7 @@ def fuzz_fc(n: int, workdir: Path, seed: int = 2) -> Report:
         fc = cuf.fc
         model = LinkModel(AGENT, COMP_ONBOARD)
         fc.tap = model.feed  # (from here on: before it, the link took only valid telemetry)
-        mutator = Mutator(random.Random(seed), fc_templates(fc.codec), fc.codec)
+        mutator = Mutator(random.Random(seed), fc_templates(fc.codec), fc.codec, target=(AGENT, COMP_ONBOARD))
         _fuzz(report, fc, mutator, n, lambda: fc.probe(AGENT, source=(42, 1)))
         if not (cuf.alive() and fc.probe(AGENT, source=(42, 1)) and cuf.station.probe(AGENT)):
             report.problems.append("the companion does not answer a valid request after the fuzz")

@@ -38,7 +38,7 @@ class Report:
         for key, want in sorted(self.expected.items()):
             got = self.counters.get(key, 0)
             if got != want:
-                self.problems.append(f"counter {key}: the companion says {got}, expected {want}")
+                self.problems.append(f"counter {key}: counted {got}, expected {want}")
 
     def text(self) -> str:
         lines = [f"{self.face}: {self.inputs} inputs in {self.seconds:.1f} s ({self.rate:,.0f} inputs/s)",

@@ -3,7 +3,10 @@ the inputs, their rate and the companion's counters against what they should be.
 found a problem (a crash, a counter off, a companion that stopped answering), keeping the
 companions' logs.
 
-    python -m tests.fuzz.run [--count 100000] [--faces gcs,gcs-signed,fc,missions,zenoh,plan-files]
+    python -m tests.fuzz.run [--count 100000] [--faces gcs,gcs-signed,fc,missions,zenoh,plan-files,sitl-gcs,...]
+
+The faces ``sitl-gcs``, ``sitl-companion`` and ``routed`` get valid messages with hostile values
+(``stack_faces.py``), and fly afterwards.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 from .mavlink_faces import fuzz_fc, fuzz_gcs
 from .missions import fuzz_missions
 from .plan_files import fuzz_plan_files
+from .stack_faces import FACES as STACK_FACES, fuzz_stack
 from .zenoh_face import fuzz_zenoh
 
 FACES = {
@@ -26,6 +30,7 @@ FACES = {
     "missions": lambda n, d: fuzz_missions(n, d),
     "zenoh": lambda n, d: fuzz_zenoh(n, d),
     "plan-files": lambda n, d: fuzz_plan_files(n),
+    **{face: (lambda n, d, face=face: fuzz_stack(face, n, d)) for face in STACK_FACES},
 }
 
 
