@@ -6,7 +6,8 @@ starts the plan at one common time, lets the formation fly, lands, disarms and s
 In real time by default; with ``--lockstep`` on simulated time, as fast as the machine allows (the
 times below are then the flight controllers' clock, which the ground station follows). The run folder gets gcs.tlog (everything the ground station
 received), plan.toml, run.json, and from the log (`triswarm plot`) telemetry.csv, summary.json and
-the figures. Exit 0 only if the formation met the bounds over [25 s, end].
+the figures. Exit 0 only if the formation met the bounds over the plan's settled window (from its
+entry's end plus check.settle_s: [25 s, end] for the case study).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, Progress, TextColumn
 
+from triswarm.protocol import metrics
 from triswarm.protocol.autopilots import launch_mode_command
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
@@ -155,19 +157,20 @@ def demo(
                           soft_wrap=True)
         raise typer.Exit(code=2) from None
     n = plan.n_agents
+    window = f"[{metrics.settled_window_start_s(plan, duration_s):g} s, {duration_s:g} s]"
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
     if ardupilot:
         console.print(f"ArduPilot's firmware ({firmware}) flying triswarm's plant, its EKF3's estimates what the "
                       f"companions fly on; it passes if every drone stays within {ARDUPILOT_TRUTH_BOUNDS[0]:g} m and "
-                      f"{ARDUPILOT_TRUTH_BOUNDS[1]:g} rad of its place over [25 s, {duration_s:g} s] in truth, and "
+                      f"{ARDUPILOT_TRUTH_BOUNDS[1]:g} rad of its place over {window} in truth, and "
                       f"{ARDUPILOT_TELEMETRY_BOUNDS[0]:g} m and {ARDUPILOT_TELEMETRY_BOUNDS[1]:g} rad in its "
                       "telemetry", soft_wrap=True)
     else:
         console.print(f"flight controllers streaming as {fc_profile}, "
                       + ("with sensor noise (1 sigma: " + ", ".join(f"{k}={v:g}" for k, v in SENSOR_NOISE) + ")" if noise
                          else "without sensor noise")
-                      + f"; it passes if every drone stays within 0.10 m and 0.02 rad of its place over [25 s, "
-                      f"{duration_s:g} s]", soft_wrap=True)
+                      + f"; it passes if every drone stays within 0.10 m and 0.02 rad of its place over {window}",
+                      soft_wrap=True)
     with contextlib.ExitStack() as running:
         try:
             if ardupilot:

@@ -8,7 +8,6 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
-import numpy as np
 import typer
 from rich.table import Table
 
@@ -31,7 +30,9 @@ LOG_HZ = 50.0
 
 def plot(
     run: Annotated[Path, typer.Argument(help="Run folder with gcs.tlog, plan.toml and run.json.")],
-    window_start_s: Annotated[float, typer.Option("--window-start-s", help="Judge the formation over [S, end] of plan time [s].")] = 25.0,
+    window_start_s: Annotated[Optional[float], typer.Option(
+        "--window-start-s", help="Judge the formation over [S, end] of plan time [s] (default: the plan's settled "
+                                 "window, from its entry's end plus check.settle_s).")] = None,
     end_s: Annotated[Optional[float], typer.Option("--end-s", help="End of the formation flight in plan time [s] "
                                                    "(default: run.json's formation_end_s, else the end of the log).")] = None,
     position_bound_m: Annotated[float, typer.Option("--position-bound-m", help="Position bound for the verdict [m].")] = 0.10,
@@ -53,7 +54,7 @@ def plot(
     from .truth import TruthError, read_truth
 
     with user_errors(RunLogError, TruthError):
-        if not math.isfinite(window_start_s):
+        if window_start_s is not None and not math.isfinite(window_start_s):
             raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
         require_positive(position_bound_m=position_bound_m, attitude_bound_rad=attitude_bound_rad)
         truth_bounds = (truth_position_bound_m or position_bound_m, truth_attitude_bound_rad or attitude_bound_rad)
@@ -78,21 +79,21 @@ def plot(
     if end_s is not None:  # the landing is not formation flight
         keep = log.t_s <= end_s
         log = dataclasses.replace(log, t_s=log.t_s[keep], position_m=log.position_m[keep], euler_rad=log.euler_rad[keep])
-    pos_err, att_err = metrics.formation_errors(plan, log.t_s, log.position_m, log.euler_rad)
-    perf = metrics.assess(log.t_s, pos_err, att_err, window_start_s=window_start_s, position_bound_m=position_bound_m,
-                          attitude_bound_rad=attitude_bound_rad)
-    per_drone = _per_drone(log, pos_err, att_err, perf)
+    if window_start_s is None:
+        window_start_s = metrics.settled_window_start_s(plan, float(log.t_s[-1]))
+    perf, per_drone = metrics.judge(plan, log.t_s, log.position_m, log.euler_rad, window_start_s, position_bound_m,
+                                    attitude_bound_rad)
+    _add_log_columns(per_drone, log)
     truth = None
     truth_path = next((run / name for name in TRUTH_FILES if (run / name).is_file()), None)
     if truth_path is not None:
         with user_errors(TruthError):
             tracks = read_truth(truth_path, [d.boot_offset_s for d in log.drones], start_unix_s)
         position_t, euler_t = on_grid(tracks, log.t_s)
-        pos_err_t, att_err_t = metrics.formation_errors(plan, log.t_s, position_t, euler_t)
-        perf_t = metrics.assess(log.t_s, pos_err_t, att_err_t, window_start_s=window_start_s,
-                                position_bound_m=truth_bounds[0], attitude_bound_rad=truth_bounds[1])
+        perf_t, per_drone_t = metrics.judge(plan, log.t_s, position_t, euler_t, window_start_s, *truth_bounds)
+        _add_log_columns(per_drone_t, log)
         truth = {"source": str(truth_path.relative_to(run)), "performance": perf_t.as_dict(),
-                 "per_drone": _per_drone(log, pos_err_t, att_err_t, perf_t), "perf": perf_t}
+                 "per_drone": per_drone_t, "perf": perf_t}
     run_entry = {
         "source": "tlog", "tlog": "gcs.tlog", "start_unix_s": start_unix_s, "log_hz": LOG_HZ,
         "span_s": [float(log.t_s[0]), float(log.t_s[-1])], "frames": log.tlog.frames,
@@ -146,24 +147,11 @@ def _number(x: object) -> bool:
     return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
 
 
-def _per_drone(log: RunLog, pos_err: np.ndarray, att_err: np.ndarray, perf: metrics.Performance) -> list[dict]:
-    in_window = log.t_s >= perf.window_start_s
-    rows = []
-    for i, drone in enumerate(log.drones):
-        worst_pos_m = float(pos_err[in_window, i].max()) if in_window.any() else None
-        worst_att_rad = float(att_err[in_window, i].max()) if in_window.any() else None
-        rows.append({
-            "drone": i + 1,
-            "worst_position_error_m": worst_pos_m,
-            "worst_attitude_error_rad": worst_att_rad,
-            "within_bounds": worst_pos_m is not None and worst_pos_m <= perf.position_bound_m
-                             and worst_att_rad <= perf.attitude_bound_rad,
-            "attitude_samples": drone.attitude_samples,
-            "position_samples": drone.position_samples,
-            "largest_gap_s": drone.largest_gap_s,
-            "clock": drone.clock,
-        })
-    return rows
+def _add_log_columns(per_drone: list[dict], log: RunLog) -> None:
+    """What the log says of each drone's telemetry, beside its verdict."""
+    for row, drone in zip(per_drone, log.drones):
+        row.update(attitude_samples=drone.attitude_samples, position_samples=drone.position_samples,
+                   largest_gap_s=drone.largest_gap_s, clock=drone.clock)
 
 
 def _print_result(name: str, perf: metrics.Performance, per_drone: list[dict], log: RunLog, run: Path,

@@ -108,21 +108,13 @@ def sim(
         task = bar.add_task("sim", total=duration, t=0.0)
         result = simulate(plan, config, progress=lambda t: bar.update(task, completed=t, t=t))
 
-    pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
-    window = plan.settled_from_s if plan.settled_from_s < duration else 0.5 * duration
-    perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window, position_bound_m=position_bound_m,
-                          attitude_bound_rad=attitude_bound_rad)
-    per_drone = []
-    in_window = result.t_s >= window
-    for i in range(plan.n_agents):
-        per_drone.append({
-            "drone": i + 1,
-            "worst_position_error_m": float(pos_err[in_window, i].max()) if in_window.any() else None,
-            "worst_attitude_error_rad": float(att_err[in_window, i].max()) if in_window.any() else None,
-            "thrust_scale_estimate": float(result.thrust_scale[i]),
-            "max_servo_angle_deg": float(math.degrees(abs(result.alpha_rad[:, i]).max())),
-            "max_rotor_speed_rpm": float(result.omega_rad_s[:, i].max() * 60 / (2 * math.pi)),
-        })
+    perf, per_drone = metrics.judge(plan, result.t_s, result.position_m, result.euler_rad,
+                                    metrics.settled_window_start_s(plan, duration),  # (a diverged flight ends early)
+                                    position_bound_m, attitude_bound_rad)
+    for i, row in enumerate(per_drone):
+        row.update(thrust_scale_estimate=float(result.thrust_scale[i]),
+                   max_servo_angle_deg=float(math.degrees(abs(result.alpha_rad[:, i]).max())),
+                   max_rotor_speed_rpm=float(result.omega_rad_s[:, i].max() * 60 / (2 * math.pi)))
     run = {
         "duration_s": duration, "physics_hz": physics_hz, "control_hz": plan.controller.rate_hz, "log_hz": log_hz,
         "servo_delay_s": result.plant_airframe.servo_delay_s, "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),

@@ -83,7 +83,9 @@ class Stack:
     companion_args: dict[int, list[str]] = field(default_factory=dict)
     """Extra arguments per agent (e.g. Zenoh endpoints)."""
     wrap: list[str] = field(default_factory=list)
-    """Prefix for every command (e.g. ip netns exec NAME)."""
+    """Prefix for every command (e.g. tests/priority.py NICE), which then starts in a session of its
+    own (the wrapper may set the session's priority). Every process ends with this one, however it
+    ends (``sitl/processes.py``)."""
     companions: bool = True
     """Start the companions (False: the SITL alone, its ports and the Zenoh ports chosen)."""
     agents_per_process: int = 1
@@ -115,7 +117,7 @@ class Stack:
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         log = (self.workdir / "logs" / f"{name}.log").open("a")
         self._logs.append(log)
-        proc = spawn(self.wrap + cmd, stdout=log, stderr=subprocess.STDOUT)  # (ends with this process)
+        proc = spawn(self.wrap + cmd, new_session=bool(self.wrap), stdout=log, stderr=subprocess.STDOUT)
         self.procs[name] = proc
         return proc
 

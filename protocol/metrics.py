@@ -85,3 +85,31 @@ def assess(t_s: np.ndarray, pos_err: np.ndarray, att_err: np.ndarray, window_sta
         conv = float(t_s[bad[-1] + 1]) if bad.size else float(t_s[0])
     return Performance(window_start_s, worst_p, worst_a, drone_p, drone_a, conv, position_bound_m, attitude_bound_rad,
                        t_p, t_a)
+
+
+def settled_window_start_s(plan: Plan, end_s: float) -> float:
+    """Where a flight of ``plan`` that ends at plan time ``end_s`` is judged from: the plan's settled
+    window (the entry's end plus ``check.settle_s``), or the second half of a flight too short to
+    reach it."""
+    return plan.settled_from_s if plan.settled_from_s < end_s else 0.5 * end_s
+
+
+def judge(plan: Plan, t_s: np.ndarray, position_m: np.ndarray, euler_rad: np.ndarray,
+          window_start_s: float | None = None, position_bound_m: float = PAPER_POSITION_BOUND_M,
+          attitude_bound_rad: float = PAPER_ATTITUDE_BOUND_RAD) -> tuple[Performance, list[dict]]:
+    """The verdict on a flight of ``plan`` (paper frame, plan time ``t_s``), over [window_start_s,
+    end] (by default the plan's settled window: ``settled_window_start_s``), and every drone's
+    worst errors there (None where the window is empty) with whether they are within the bounds:
+    one verdict for ``sim``, ``plot`` and ``demo``."""
+    pos_err, att_err = formation_errors(plan, t_s, position_m, euler_rad)
+    start = settled_window_start_s(plan, float(t_s[-1])) if window_start_s is None else float(window_start_s)
+    perf = assess(t_s, pos_err, att_err, start, position_bound_m, attitude_bound_rad)
+    w = t_s >= start
+    rows = []
+    for i in range(pos_err.shape[1]):
+        worst_p = float(pos_err[w, i].max()) if w.any() else None
+        worst_a = float(att_err[w, i].max()) if w.any() else None
+        rows.append({"drone": i + 1, "worst_position_error_m": worst_p, "worst_attitude_error_rad": worst_a,
+                     "within_bounds": worst_p is not None and worst_p <= position_bound_m
+                     and worst_a <= attitude_bound_rad})
+    return perf, rows

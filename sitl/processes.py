@@ -33,9 +33,12 @@ def _dies_with(parent_pid: int):
     return in_child
 
 
-def spawn(cmd: list[str], **popen_args) -> subprocess.Popen:
-    """``subprocess.Popen(cmd, **popen_args)``, in a process group of its own, ending with its launcher."""
-    return subprocess.Popen(cmd, process_group=0, preexec_fn=_dies_with(os.getpid()), **popen_args)
+def spawn(cmd: list[str], new_session: bool = False, **popen_args) -> subprocess.Popen:
+    """``subprocess.Popen(cmd, **popen_args)``, in a process group of its own (with ``new_session``,
+    in a session of its own, which is a group of its own too: for a wrapper that sets the
+    session's priority), ending with its launcher."""
+    group = {"start_new_session": True} if new_session else {"process_group": 0}
+    return subprocess.Popen(cmd, preexec_fn=_dies_with(os.getpid()), **group, **popen_args)
 
 
 def signal_group(proc: subprocess.Popen, sig: int) -> None:

@@ -216,3 +216,24 @@ def test_in_flight_a_plan_may_not_say_otherwise_about_the_air(paper_spec):
     assert "may not add or remove [wind]" in in_flight_change_problem(windy, paper_spec)
     fixed = spec_with(paper_spec, ("controller", "air_density_kg_m3"), 1.225)
     assert in_flight_change_problem(fixed, spec_with(fixed, ("wind", "speed_m_s"), 3.0)) is None
+
+
+def test_one_verdict_judges_each_plan_over_its_own_settled_window(paper_spec):
+    """sim, plot and demo judge with ``metrics.judge``: over the plan's settled window (its entry's
+    end plus check.settle_s), the second half of a flight too short for it. A drone 0.2 m off its
+    place only before a plan's window is within the bounds; the same drone judged from 25 s with a
+    longer entry's plan (window from 53 s) is off."""
+    from triswarm.protocol import metrics
+
+    longer = plan_from_dict(spec_with(paper_spec, ("entry", "blend_s"), 40.0), "p.toml")
+    t_s = np.arange(0.0, longer.duration_s + 1e-9, 0.5)
+    ref = np.stack([longer.reference(float(t))[0] for t in t_s])
+    position_m, euler_rad = ref[:, :, 9:12].copy(), ref[:, :, 6:9].copy()
+    position_m[t_s < 50.0, 2, 0] += 0.2  # drone 3, before the window only
+    perf, rows = metrics.judge(longer, t_s, position_m, euler_rad)
+    assert perf.window_start_s == 53.0 and perf.within_bounds and all(r["within_bounds"] for r in rows)
+    assert rows[2]["worst_position_error_m"] == pytest.approx(0.0, abs=1e-9)
+    perf, rows = metrics.judge(longer, t_s, position_m, euler_rad, window_start_s=25.0)
+    assert not perf.within_bounds and [r["drone"] for r in rows if not r["within_bounds"]] == [3]
+    assert rows[2]["worst_position_error_m"] == pytest.approx(0.2)
+    assert metrics.settled_window_start_s(longer, 40.0) == 20.0  # (too short: its second half)
