@@ -33,7 +33,7 @@ from .link import GroundLink, LinkError
 from .plot_cmd import plot
 from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
 from .stack import Stack, StackError
-from .swarm_cmd import command_all, for_each, result_text, start_all, take_off_all, upload_all
+from .swarm import command_all, for_each, result_text, start_all, take_off_all, upload_all
 
 STARTUP_S = 120.0  # companions load numba kernels and open Zenoh; two busy cores can take a while
 ARM_READY_S = 120.0

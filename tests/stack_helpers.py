@@ -18,6 +18,8 @@ from pymavlink import mavutil
 from triswarm.companion.bus import peer_config
 from triswarm.protocol import metrics
 
+from .poll import poll
+
 
 class GroundStation:
     """A GCS on one companion's ground-station link: says hello at 1 Hz, records what it hears. Until
@@ -79,12 +81,8 @@ class GroundStation:
         return [m for m in found if all(_field(m, k) == v for k, v in where.items())]
 
     def wait_for(self, type_: str, timeout_s: float, **where) -> list:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            found = self.heard(type_, **where)
-            if found:
-                return found
-            time.sleep(0.05)
+        """The messages of ``type_`` (with fields ``where``) heard, once there is one (bounded)."""
+        poll(lambda: bool(self.heard(type_, **where)), timeout_s)
         return self.heard(type_, **where)
 
 
@@ -215,20 +213,11 @@ def wait_sim(clock, t_unix: float, stack=None, wall_timeout_s: float = 240.0, po
     ``t_unix``, checking that every process of ``stack`` (but those named in ``dead_ok``) still
     runs; fail after ``wall_timeout_s`` of wall time (a stack on simulated time runs as fast as
     the machine lets it)."""
-    deadline = time.monotonic() + wall_timeout_s
-    while not clock() >= t_unix:
-        assert time.monotonic() < deadline, f"the simulated clock did not reach {t_unix:.1f} within {wall_timeout_s} s"
-        if stack is not None:
-            dead = [name for name, up in stack.alive().items() if not up and name not in dead_ok]
-            assert not dead, f"{dead} exited early: {[stack.log(n)[-2000:] for n in dead]}"
-        time.sleep(poll_s)
+    def all_running() -> None:
+        dead = [] if stack is None else [name for name, up in stack.alive().items() if not up and name not in dead_ok]
+        assert not dead, f"{dead} exited early: {[stack.log(n)[-2000:] for n in dead]}"
 
-
-def wait_for(cond, timeout_s: float, what: str, poll_s: float = 0.1) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
-        time.sleep(poll_s)
+    poll(lambda: clock() >= t_unix, wall_timeout_s, f"the simulated clock reaching {t_unix:.1f}", poll_s, all_running)
 
 
 def flying(link, drone: int) -> bool:

@@ -19,7 +19,8 @@ from triswarm.gcs.stack import Stack
 from triswarm.protocol.autopilots import ARDUCOPTER_BRAKE, ARDUCOPTER_GUIDED
 
 from .firmware_helpers import Peer, arducopter
-from .stack_helpers import judge, judge_truth, wait_for
+from .stack_helpers import judge, judge_truth
+from .poll import poll
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 MAV = mavutil.mavlink
@@ -72,15 +73,15 @@ def test_the_script_drives_the_outputs_only_armed_in_its_mode_and_lets_them_laps
         links = stack.manifest["vehicles"][0]["links"]
         with Peer(links["companion"]["pymavlink"], 1, MAV.MAV_COMP_ID_ONBOARD_COMPUTER) as companion, \
                 Peer(links["gcs"]["pymavlink"], 255, 190) as gcs:
-            wait_for(lambda: companion.heard("HEARTBEAT"), 30, "a heartbeat from the firmware")
+            poll(lambda: companion.heard("HEARTBEAT"), 30, "a heartbeat from the firmware")
             companion.interval(MAV.MAVLINK_MSG_ID_ATTITUDE, 100.0)
             companion.interval(MAV.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, SERVO_HZ)
-            wait_for(lambda: any("triswarm: ready" in t for t in gcs.texts()), 30, "the script's word")
+            poll(lambda: any("triswarm: ready" in t for t in gcs.texts()), 30, "the script's word")
 
             # disarmed: nothing the companion says reaches an output
             with Commands(companion, controls):
                 first = len(companion.heard("SERVO_OUTPUT_RAW"))
-                wait_for(lambda: len(companion.heard("SERVO_OUTPUT_RAW")) > first + 50, 30, "a second of outputs")
+                poll(lambda: len(companion.heard("SERVO_OUTPUT_RAW")) > first + 50, 30, "a second of outputs")
             disarmed = {outputs(m) for m in companion.heard("SERVO_OUTPUT_RAW")[first:]}
             assert not any(o[:3] == expected[:3] or o[3:] == expected[3:] for o in disarmed), disarmed
 
@@ -88,25 +89,25 @@ def test_the_script_drives_the_outputs_only_armed_in_its_mode_and_lets_them_laps
             gcs.set_mode(ARDUCOPTER_GUIDED, timeout_s=READY_S)
             gcs.until_accepted(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 1, timeout_s=READY_S)
             with Commands(companion, controls):
-                wait_for(lambda: outputs(companion.heard("SERVO_OUTPUT_RAW")[-1]) == expected, 10,
+                poll(lambda: outputs(companion.heard("SERVO_OUTPUT_RAW")[-1]) == expected, 10,
                          f"the outputs at {expected}")
                 # a stranger (the ground station's system) commanding the motors changes nothing
                 with Commands(gcs, [0.3, 0.3, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0]):
                     mark = len(companion.heard("SERVO_OUTPUT_RAW"))
-                    wait_for(lambda: len(companion.heard("SERVO_OUTPUT_RAW")) > mark + 25, 10, "half a second of outputs")
+                    poll(lambda: len(companion.heard("SERVO_OUTPUT_RAW")) > mark + 25, 10, "half a second of outputs")
                 driven = [outputs(m) for m in companion.heard("SERVO_OUTPUT_RAW")[mark:]]
                 assert all(o == expected for o in driven), set(driven)
                 stopped_at = len(companion.heard("SERVO_OUTPUT_RAW"))
 
             # commands stopped: the overrides lapse within TSW_CMD_TOUT, and the script brakes
-            wait_for(lambda: any(outputs(m) != expected for m in companion.heard("SERVO_OUTPUT_RAW")[stopped_at:]), 10,
+            poll(lambda: any(outputs(m) != expected for m in companion.heard("SERVO_OUTPUT_RAW")[stopped_at:]), 10,
                      "the outputs to lapse")
             after = companion.heard("SERVO_OUTPUT_RAW")[stopped_at - 1:]
             k = next(i for i, m in enumerate(after) if outputs(m) != expected)
             last_driven_us, lapsed_us = after[k - 1].time_usec, after[k].time_usec
             lapse_s = (lapsed_us - last_driven_us) / 1e6
             assert lapse_s <= CMD_TIMEOUT_S + 1.0 / SERVO_HZ + 0.005, f"outputs still driven {lapse_s:.3f} s on"
-            wait_for(lambda: any(h.custom_mode == ARDUCOPTER_BRAKE for h in gcs.heard("HEARTBEAT")
+            poll(lambda: any(h.custom_mode == ARDUCOPTER_BRAKE for h in gcs.heard("HEARTBEAT")
                                  if h.get_srcComponent() == 1), 10, "the failsafe's BRAKE")
             assert any("triswarm: failsafe" in t for t in gcs.texts()), gcs.texts()[-5:]
             assert any(m.name.rstrip("\x00") == "TSW_STATE" and m.value == 2 for m in gcs.heard("NAMED_VALUE_FLOAT"))
@@ -136,7 +137,7 @@ def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_ardupilot(
                autopilot="ardupilot", firmware=arducopter()) as stack, Recorder(stack.manifest) as rec:
         start = stack.start_at
         end = start + plan.duration_s
-        wait_for(lambda: rec.now() >= end, 75.0 + plan.duration_s + 60.0, "the end of the plan", poll_s=0.5)
+        poll(lambda: rec.now() >= end, 75.0 + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
         t_from = plan.settled_from_s
         ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
         logs = stack.log("companion-1")

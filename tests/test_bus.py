@@ -20,6 +20,7 @@ from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
 
 from .netem import NetNamespace, need_netns
+from .poll import poll_async
 
 PLAN = 0x5EED
 XI = np.linspace(-1.0, 1.0, 12)
@@ -27,14 +28,7 @@ XI = np.linspace(-1.0, 1.0, 12)
 
 async def until(predicate, timeout_s: float, buses=()) -> bool:
     """Drain the buses every 10 ms until predicate() (bounded in time)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for b in buses:
-            b.drain()
-        if predicate():
-            return True
-        await asyncio.sleep(0.01)
-    return predicate()
+    return await poll_async(predicate, timeout_s, step=lambda: [b.drain() for b in buses])
 
 
 def estimate(agent: int, seq: int, t_plan: float, plan: int = PLAN, xi=XI) -> bytes:

@@ -25,7 +25,8 @@ from triswarm.gcs.scenarios import load_plan
 from triswarm.gcs.stack import Stack
 from triswarm.protocol.mavlink import mavlink, new_codec
 
-from .stack_helpers import judge, small_plan, wait_for, wait_sim
+from .stack_helpers import judge, small_plan, wait_sim
+from .poll import poll
 
 UNIX_US = 1_800_000_000_000_000
 
@@ -101,7 +102,7 @@ def test_unix_clock_steps_in_flight_are_refused_and_the_formation_holds(tmp_path
             shift_s += step_s
             fc_unix_s = rec.now() + shift_s  # (the recorder's clock is vehicle 1's boot clock, unshifted)
             sock.send(mavlink.MAVLink_system_time_message(round(fc_unix_s * 1e6), 0).pack(codec))
-            wait_for(lambda: len(told_steps(stack.log("companion-1"))) > len(told), 10.0,
+            poll(lambda: len(told_steps(stack.log("companion-1"))) > len(told), 10.0,
                      f"companion 1 says its flight controller's clock stepped {shift_s:+.0f} s")
             told = told_steps(stack.log("companion-1"))
             # what it says: how far the Unix time now is from the one it flies on (the clock it

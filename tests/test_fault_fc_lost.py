@@ -33,7 +33,8 @@ from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.stack import Stack, free_ports
 from triswarm.protocol.mavlink import mavlink
 
-from .stack_helpers import BusObserver, GroundStation, judge, small_plan, status_changes, wait_for, wait_sim
+from .stack_helpers import BusObserver, GroundStation, judge, small_plan, status_changes, wait_sim
+from .poll import poll
 
 pytestmark = pytest.mark.slow
 N = 3
@@ -90,7 +91,7 @@ def test_sitl_killed_mid_flight_then_started_again(tmp_path, paper_spec):
 
         stack.kill_sitl(signal.SIGKILL)
         t_kill = time.monotonic()
-        wait_for(lambda: all(f"companion {i}: flight controller lost: nothing heard" in stack.log(f"companion-{i}")
+        poll(lambda: all(f"companion {i}: flight controller lost: nothing heard" in stack.log(f"companion-{i}")
                              for i in range(1, N + 1)),
                  FC_SILENT_S + 1.0 + LOST_MARGIN_S, "every companion says its flight controller is lost")
         measured["lost_said_after_s"] = round(time.monotonic() - t_kill, 2)
@@ -103,7 +104,7 @@ def test_sitl_killed_mid_flight_then_started_again(tmp_path, paper_spec):
         cpu0, wall0 = cpu_seconds(companions.pid), time.monotonic()
         gcs.send(gcs.conn.mav.param_request_read_encode(1, 191, b"CTRL_RATE_HZ", -1))
         lost_reports = lambda: [h for h in bus.health[1][max(reports0 - 1, 0):] if h["fc_lost"]]  # noqa: E731
-        wait_for(lambda: len(lost_reports()) > REPORTS_JUDGED and time.monotonic() - t_kill >= OUTAGE_S, OUTAGE_WITHIN_S,
+        poll(lambda: len(lost_reports()) > REPORTS_JUDGED and time.monotonic() - t_kill >= OUTAGE_S, OUTAGE_WITHIN_S,
                  f"{REPORTS_JUDGED + 1} health reports of agent 1 with its flight controller lost")
         measured["cpu_while_lost"] = round((cpu_seconds(companions.pid) - cpu0) / (time.monotonic() - wall0), 3)  # (told)
         measured["outage_s"] = round(time.monotonic() - t_kill, 1)
@@ -128,10 +129,10 @@ def test_sitl_killed_mid_flight_then_started_again(tmp_path, paper_spec):
 
         stack.restart_sitl(["--max-rtf", str(RESTARTED_MAX_RTF)])
         t_restart = time.monotonic()
-        wait_for(lambda: all("resuming the plan as after a restart" in stack.log(f"companion-{i}") for i in range(1, N + 1)),
+        poll(lambda: all("resuming the plan as after a restart" in stack.log(f"companion-{i}") for i in range(1, N + 1)),
                  60.0, "every companion resumes")
         measured["resumed_after_s"] = round(time.monotonic() - t_restart, 2)
-        wait_for(lambda: all(any(s == "FLYING" and since > start + KILL_AT for since, s, _ in status_changes(bus.statuses, i))
+        poll(lambda: all(any(s == "FLYING" and since > start + KILL_AT for since, s, _ in status_changes(bus.statuses, i))
                              for i in range(1, N + 1)), 60.0, "every agent flying again")
         back = max(min(since for since, s, _ in status_changes(bus.statuses, i) if s == "FLYING" and since > start + KILL_AT)
                    for i in range(1, N + 1)) - start

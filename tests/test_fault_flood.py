@@ -38,7 +38,8 @@ from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.stack import Stack
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 
-from .stack_helpers import BusObserver, GroundStation, judge, small_plan, wait_for, wait_sim
+from .stack_helpers import BusObserver, GroundStation, judge, small_plan, wait_sim
+from .poll import poll
 
 pytestmark = pytest.mark.slow
 N = 3
@@ -138,7 +139,7 @@ def test_a_ground_station_flood_is_shed_and_the_formation_holds(tmp_path, paper_
         flooder = Flooder(stack.gcs_ports[0], FLOOD_FRAMES, FLOOD_HZ, rec.now() - start + 1.0)
         flooder.start()
         cleanup.callback(flooder.close)
-        wait_for(lambda: flooder.sent > FLOOD_FRAMES // 4, 30.0, "a quarter of the flood sent")
+        poll(lambda: flooder.sent > FLOOD_FRAMES // 4, 30.0, "a quarter of the flood sent")
         flood_port = flooder.conn.port.getsockname()[1]  # (bound by its first send; read before it closes)
 
         # the real ground station, in the flood: a parameter read, a command, a leader move
@@ -161,7 +162,7 @@ def test_a_ground_station_flood_is_shed_and_the_formation_holds(tmp_path, paper_
         window_end = time.monotonic()
         wall_s = window_end - flooder.started
         wait_sim(rec.now, start + t_end_plan + AFTER_S, stack)
-        wait_for(lambda: "flood over" in stack.log("companion-1"), 10.0, "the end of the flood said")
+        poll(lambda: "flood over" in stack.log("companion-1"), 10.0, "the end of the flood said")
         health = bus.health[1][-1]
         gcs_sent = 3 + math.ceil(time.monotonic() - t_open)  # (its heartbeat once a second, and the three above)
     wall_total_s = time.monotonic() - flooder.started  # (until the companions stopped)

@@ -26,7 +26,8 @@ from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanItem, decode_plan, encode_plan, field_value
 
 
-from .stack_helpers import flying, small_plan, wait_for, wait_sim
+from .stack_helpers import flying, small_plan, wait_sim
+from .poll import poll
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,7 +102,7 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             Recorder(stack.manifest) as rec:
         with CuttableRelay(stack.gcs_ports[1]) as relay, \
                 GroundLink({1: stack.endpoints()[1], 2: f"udpout:127.0.0.1:{relay.port}"}, tlog=tmp_path / "gcs.tlog") as link:
-            wait_for(lambda: flying(link, 1) and flying(link, 2), 90, "both drones in formation")
+            poll(lambda: flying(link, 1) and flying(link, 2), 90, "both drones in formation")
             wait_sim(rec.now, stack.start_at + 15.0, stack)  # the entry is over at 15 s of plan time
 
             # an infeasible plan sent by a raw client: refused with the code and the reason
@@ -126,7 +127,7 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             out = missions.upload(link, 2, items, progress=cut_after_five, timeout_s=0.3, retries=3)
             assert not out.ok and 5 <= max(sent) < len(items)  # (a request may be in flight at the cut)
             relay.cut.clear()  # the ground station has given up; the companion asks on, then gives up too
-            wait_for(lambda: any(f"upload timed out at item {k}/{len(items)}" in text for _, _, text in link.companion(2).texts
+            poll(lambda: any(f"upload timed out at item {k}/{len(items)}" in text for _, _, text in link.companion(2).texts
                                  for k in range(4, max(sent) + 1)), 10,
                      "the companion's timeout (1 s, 5 retries)")
             assert held_plan_id(link, 2) == flying_id

@@ -21,7 +21,8 @@ from triswarm.gcs.monitor import _heard_a_second, rows, table
 from triswarm.gcs.stack import Stack
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, CustomMode, mavlink, new_codec
 
-from .stack_helpers import flying, small_plan, wait_for
+from .stack_helpers import flying, small_plan
+from .poll import poll
 
 NOW = 1_700_000_000.0
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
@@ -248,7 +249,7 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
     plan_file.write_text(tomli_w.dumps(small_plan(paper_spec, 2, "pair")))
     with Stack(plan_file, tmp_path / "stack", 2, start_delay_s=5.0, lockstep=True, agents_per_process=0) as stack:
         with GroundLink(stack.endpoints()) as link:
-            wait_for(lambda: flying(link, 1) and flying(link, 2), 60.0, "both drones in formation")
+            poll(lambda: flying(link, 1) and flying(link, 2), 60.0, "both drones in formation")
             # Two ground stations on the same links at once (the monitor, and this link): each
             # gets all of the forwarded telemetry (GCS_TLM_HZ), not a share of it.
             with link.subscribe(None, COMP_AUTOPILOT, "ATTITUDE") as attitudes, \
@@ -273,7 +274,7 @@ def test_once_against_the_stack_flying_two_drones(tmp_path, paper_spec):
                     return all(max((t for d, t in here if d == drone), default=-1) >= t_last
                                for drone, t_last in dict(sorted(there, key=lambda dt: dt[1])).items())
 
-                wait_for(caught_up, 60.0, "this station's frames past the monitor's last")
+                poll(caught_up, 60.0, "this station's frames past the monitor's last")
                 reported = {}  # drone -> the formation errors its companion reported meanwhile [m]
                 for m in iter(lambda: named.get(0.0), None):
                     if m.name == "FORM_ERRM":

@@ -24,7 +24,8 @@ from triswarm.protocol.mavlink import (COMP_AUTOPILOT, COMP_ONBOARD, SIGNATURE_R
                                        setup_signing, signing_key, signing_timestamp)
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
-from .stack_helpers import small_plan, wait_for
+from .stack_helpers import small_plan
+from .poll import poll
 
 KEY = bytes(range(1, 33))
 
@@ -169,7 +170,7 @@ def test_timestamps_follow_the_clock_given_and_never_fall_behind_it():
 # -- the stack ------------------------------------------------------------------------------------
 
 def heard_companion(link: GroundLink) -> None:
-    wait_for(lambda: link.companion(1).heartbeat is not None, 60, "the companion's heartbeat")  # (its start)
+    poll(lambda: link.companion(1).heartbeat is not None, 60, "the companion's heartbeat")  # (its start)
 
 
 @pytest.mark.slow
@@ -191,12 +192,12 @@ def test_the_companion_takes_only_signed_frames_from_the_ground(tmp_path, paper_
             assert result is None
             result, _ = link.command(1, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], timeout_s=0.3, retries=1)
             assert result is None
-            wait_for(lambda: any("refused frames from the ground station" in text and "unsigned" in text
+            poll(lambda: any("refused frames from the ground station" in text and "unsigned" in text
                                  for _, _, text in link.companion(1).texts), 3, "the companion's report")
 
         # another key: each side refuses the other's frames
         with GroundLink(endpoints, signing_key=secrets.token_bytes(32)) as link:
-            wait_for(lambda: link.counters["refused_bad_signature"] > 0 and link.autopilot(1).heartbeat is not None, 5,
+            poll(lambda: link.counters["refused_bad_signature"] > 0 and link.autopilot(1).heartbeat is not None, 5,
                      "the companion's frames refused, the flight controller's (not signed) taken")
             assert link.companion(1).heartbeat is None
             out = missions.upload(link, 1, items, timeout_s=0.3, retries=1)
@@ -296,7 +297,7 @@ def test_a_frame_captured_before_a_restart_is_still_a_replay_after_it(tmp_path):
         else:
             pytest.fail("the companion never answered")
         saved = tmp_path / "state" / "signing.json"
-        wait_for(lambda: saved.exists() and "7,254,190" in json.loads(saved.read_text()), 3.0, "the streams saved")
+        poll(lambda: saved.exists() and "7,254,190" in json.loads(saved.read_text()), 3.0, "the streams saved")
         procs[0].kill()
         procs[0].wait(timeout=10)
 
@@ -312,7 +313,7 @@ def test_a_frame_captured_before_a_restart_is_still_a_replay_after_it(tmp_path):
             except (socket.timeout, ConnectionRefusedError):
                 return False
 
-        wait_for(companion_heard, 30.0, "the restarted companion")
+        poll(companion_heard, 30.0, "the restarted companion")
         assert not station.answered(captured, 1.0)  # the replay
         assert station.answered(station.command(), 2.0)  # the station's next frame
         stop_in_turn([procs[1:]], sig=signal.SIGTERM)

@@ -20,7 +20,8 @@ from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_est
 from triswarm.protocol.mavlink import CustomMode
 
 from .conftest import PAPER_PLAN_FILE
-from .stack_helpers import BusObserver, GroundStation, judge, rejoin_ends, status_changes, wait_for, wait_sim
+from .stack_helpers import BusObserver, GroundStation, judge, rejoin_ends, status_changes, wait_sim
+from .poll import poll
 
 pytestmark = pytest.mark.slow
 SWARM = "paper-hexagon"  # the plan's name: the companions' default swarm
@@ -82,7 +83,7 @@ def test_paper_case_study_whole_stack_then_a_companion_killed_and_restarted(tmp_
         wait_sim(clock, start + RESTART_AT, stack, dead_ok=("companion-2",))
         stack.start_companion(2)
         # it flies again once it has started (seconds of wall time, as many of simulated time)
-        wait_for(lambda: any(since > start + RESTART_AT and status == "FLYING"
+        poll(lambda: any(since > start + RESTART_AT and status == "FLYING"
                              for since, status, _ in status_changes(bus.statuses, 2)), 120.0, "agent 2 flying again")
         back = min(since for since, status, _ in status_changes(bus.statuses, 2)
                    if since > start + RESTART_AT and status == "FLYING") - start

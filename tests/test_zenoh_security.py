@@ -33,6 +33,7 @@ from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, alive_key, estimate_key
 
 from .test_bus import PLAN, XI, until
+from .poll import poll
 
 DENIED_WAIT_S = 2.0     # how long a denied put must stay undelivered
 REFUSED_WAIT_S = 2.0
@@ -116,18 +117,6 @@ def clients():
     c.close()
 
 
-def wait_for(predicate, timeout_s: float, step=None) -> bool:
-    """Call step() and poll predicate() every 20 ms until it holds (bounded in time)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if step is not None:
-            step()
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
-
-
 # -- the files ---------------------------------------------------------------------------------
 
 def openssl_text(*args: str) -> str:
@@ -206,11 +195,11 @@ def test_agents_reach_each_other_through_the_mtls_router(swarm, router, clients)
     two = clients.open(swarm.config("agent-2"))
     assert [str(z) for z in one.info.routers_zid()] == [str(router.info.zid())]
     # the router knows each client by its certificate's common name, the name its ACL keys on
-    assert wait_for(lambda: {link.auth_identifier for link in router.info.links()} >= {"agent-1", "agent-2"}, 5.0)
+    assert poll(lambda: {link.auth_identifier for link in router.info.links()} >= {"agent-1", "agent-2"}, 5.0)
 
     got = clients.collect(two, swarm.est(1))
     pub = one.declare_publisher(swarm.est(1))
-    assert wait_for(lambda: got, 10.0, step=lambda: pub.put(b"estimate of 1")), "agent 2 got nothing from agent 1"
+    assert poll(lambda: got, 10.0, step=lambda: pub.put(b"estimate of 1")), "agent 2 got nothing from agent 1"
     assert set(got) == {b"estimate of 1"}
 
     # liveliness through the router: agent 1's token, seen by agent 2
@@ -218,7 +207,7 @@ def test_agents_reach_each_other_through_the_mtls_router(swarm, router, clients)
     alive = []
     clients.keep(two.liveliness().declare_subscriber(alive_key(swarm.name, "*"), lambda s: alive.append(str(s.key_expr)),
                                                      history=True))
-    assert wait_for(lambda: alive_key(swarm.name, 1) in alive, 5.0)
+    assert poll(lambda: alive_key(swarm.name, 1) in alive, 5.0)
     # and a liveliness query (allowed as liveliness_query) from a fresh session
     three = clients.open(swarm.config("agent-3"))
     replies = [r.ok for r in three.liveliness().get(alive_key(swarm.name, "*"), timeout=2.0)]
@@ -243,9 +232,9 @@ def assert_refused(config: zenoh.Config, swarm: Swarm, clients: Sessions, what: 
         while time.monotonic() < deadline:
             s.put(swarm.est(1), b"from the refused")
             time.sleep(0.05)
+        # (the authorised put, heard by the listener, is the delivery the refused ones would have had)
+        assert poll(lambda: b"authorised" in heard, 10.0, step=lambda: speaker.put(swarm.est(1), b"authorised"))
         assert b"from the refused" not in heard, f"{what}: its put was delivered"
-        speaker.put(swarm.est(1), b"authorised")
-        time.sleep(0.5)
         assert leaked == [], f"{what}: it received data"
         return "isolated"
     finally:
@@ -280,7 +269,7 @@ def test_an_agent_cannot_write_on_another_agents_keys(swarm, router, clients):
     # ACL has no such message), and it learns that agent 2 subscribes: its puts do go to the
     # router, which drops them.
     forger = one.declare_publisher(swarm.est(2))
-    assert wait_for(lambda: forger.matching_status.matching, 5.0), "agent 1 never learnt of agent 2's subscriber"
+    assert poll(lambda: forger.matching_status.matching, 5.0), "agent 1 never learnt of agent 2's subscriber"
     mine = one.declare_publisher(swarm.est(1))
     fake_token = one.liveliness().declare_token(alive_key(swarm.name, 2))
     token = one.liveliness().declare_token(alive_key(swarm.name, 1))
@@ -291,7 +280,7 @@ def test_an_agent_cannot_write_on_another_agents_keys(swarm, router, clients):
         one.delete(swarm.est(2))
         mine.put(b"mine")
         time.sleep(0.05)
-    assert wait_for(lambda: own, 5.0, step=lambda: mine.put(b"mine")), "agent 1's own key did not deliver"
+    assert poll(lambda: own, 5.0, step=lambda: mine.put(b"mine")), "agent 1's own key did not deliver"
     assert forged == [], "the router let agent 1 put on agent 2's key"
     assert alive_key(swarm.name, 1) in alive and alive_key(swarm.name, 2) not in alive, alive
     fake_token.undeclare()
@@ -304,12 +293,14 @@ def test_the_ground_station_reads_everything_and_writes_nothing(swarm, router, c
     everything = []
     clients.keep(gcs.declare_subscriber("**", lambda s: everything.append(str(s.key_expr))))
     heard = clients.collect(one, swarm.est(3))
-    assert wait_for(lambda: swarm.est(1) in everything, 10.0, step=lambda: one.put(swarm.est(1), b"x"))
+    assert poll(lambda: swarm.est(1) in everything, 10.0, step=lambda: one.put(swarm.est(1), b"x"))
     deadline = time.monotonic() + DENIED_WAIT_S
     while time.monotonic() < deadline:
         gcs.put(swarm.est(3), b"from the gcs")
         time.sleep(0.05)
-    assert heard == []
+    three = clients.open(swarm.config("agent-3"))  # (its own put on its key arrives: the path is there)
+    assert poll(lambda: heard, 10.0, step=lambda: three.put(swarm.est(3), b"from agent 3"))
+    assert set(heard) == {b"from agent 3"}, heard
 
 
 def test_two_routers_forward_between_them_and_each_enforces(tmp_path, clients):
@@ -329,16 +320,18 @@ def test_two_routers_forward_between_them_and_each_enforces(tmp_path, clients):
     one, two = config("agent-1"), config("agent-2")
     one.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{pa}"]))
     two.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.2:{pb}"]))
-    assert wait_for(lambda: len(a.info.routers_zid()) == 1 and len(b.info.routers_zid()) == 1, 10.0)
+    assert poll(lambda: len(a.info.routers_zid()) == 1 and len(b.info.routers_zid()) == 1, 10.0)
     one, two = clients.open(one), clients.open(two)
     own, forged = clients.collect(two, estimate_key(name, 1)), clients.collect(two, estimate_key(name, 2))
-    assert wait_for(lambda: own, 10.0, step=lambda: one.put(estimate_key(name, 1), b"mine"))
+    assert poll(lambda: own, 10.0, step=lambda: one.put(estimate_key(name, 1), b"mine"))
     forger = one.declare_publisher(estimate_key(name, 2))
-    assert wait_for(lambda: forger.matching_status.matching, 5.0)  # so its puts do leave agent 1
+    assert poll(lambda: forger.matching_status.matching, 5.0)  # so its puts do leave agent 1
     deadline = time.monotonic() + DENIED_WAIT_S
     while time.monotonic() < deadline:
         forger.put(b"forged")
         time.sleep(0.05)
+    mark = len(own)  # (a put on its own key after the forged ones arrives: they would have too)
+    assert poll(lambda: len(own) > mark, 10.0, step=lambda: one.put(estimate_key(name, 1), b"mine"))
     assert forged == []
 
 

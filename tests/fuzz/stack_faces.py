@@ -27,7 +27,7 @@ from triswarm.gcs import missions
 from triswarm.gcs.link import GroundLink
 from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.stack import Stack
-from triswarm.gcs.swarm_cmd import start_all, take_off_all
+from triswarm.gcs.swarm import start_all, take_off_all
 from triswarm.protocol.autopilots import launch_mode_command
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink as M, new_codec
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
