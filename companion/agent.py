@@ -57,6 +57,9 @@ log = logging.getLogger("triswarm.companion")
 
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
 FC_SILENT_S = 3.0
+REPUBLISH_AFTER_S = 1.0
+"""In lockstep, an estimate not followed by another for this long (the clock stands) is sent again
+(``Bus.republish``)."""
 """Nothing from the flight controller for this long [s, wall clock]: it is lost. (It sends a heartbeat
 a second at least; a simulator in lockstep too while its clock stands.)"""
 CLOCK_JUMP_US = REBOOT_JUMP_US
@@ -327,6 +330,8 @@ class Agent:
         while True:
             self.watch_fc()
             self.tell_others()
+            if self.bus is not None and self.fc.answers.lockstep and self.id in self.bus.members:
+                self.bus.republish(self.id, REPUBLISH_AFTER_S)
             hb = self.heartbeat()
             for link in (self.fc.link, self.gcs.link):
                 link.send(hb)

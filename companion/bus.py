@@ -242,6 +242,10 @@ class _Member:
     """The reliable copies' publisher (None in lockstep, where every estimate is reliable, and on a
     reliable UDP link)."""
     seq: int = 0
+    last: bytes | None = None
+    """The newest estimate published, as sent."""
+    last_at: float = 0.0
+    """When it was published [s, monotonic]."""
     previous_plan_id: int | None = None
     """After a plan change in flight, the plan before it: its estimates still count (neighbours
     switch within a tick of each other, and their estimates stay continuous through it)."""
@@ -537,8 +541,21 @@ class Bus:
             m.seq, now, t_plan_s, status, m.plan_id, now, xi
         data = encode_estimate(Estimate(agent, m.plan_id, m.seq, now, t_plan_s, status, xi))
         m.publisher.put(data)
+        m.last, m.last_at = data, time.monotonic()
         if m.copy_publisher is not None and m.seq % COPY_EVERY == 0:
             m.copy_publisher.put(data)
+
+    def republish(self, agent: int, after_s: float) -> bool:
+        """Agent ``agent``'s newest estimate again if it is ``after_s`` old (wall) or more: in
+        lockstep, where the clock stands until every awaited estimate is in, one lost with a Zenoh
+        session that a stall of the machine ended comes again (the others drop it as old)."""
+        m = self.members[agent]
+        if m.last is None or time.monotonic() - m.last_at < after_s:
+            return False
+        m.publisher.put(m.last)
+        m.last_at = time.monotonic()
+        self.counters["republished"] += 1
+        return True
 
     def publish_status(self, agent: int, status: AgentStatus, reason: str = "", since_s: float | None = None) -> None:
         """The status, why, and since when (Unix time [s]). Sent at every change and once a second,

@@ -120,6 +120,13 @@ def test_estimates_status_garbage_and_liveliness(swarm):
                                and two.estimates[1].t_plan_s == 4.0, 10.0, [two])
             np.testing.assert_array_equal(two.estimates[1].xi, XI * 3)
 
+            # the newest estimate again (lockstep, the clock standing): once it is old enough, taken
+            # as old by who has it
+            old_before = two.counts().get("drop_old", 0)
+            assert not one.republish(1, after_s=60.0) and one.republish(1, after_s=0.0)
+            assert await until(lambda: two.counts().get("drop_old", 0) > old_before, 10.0, [two])
+            assert one.counters["republished"] == 1 and two.estimates[1].t_plan_s == 4.0
+
             # status: agent 1 says it holds
             one.publish_status(1, AgentStatus.HOLDING, "test")
             assert await until(lambda: two.status_of(1, (PLAN,)) == AgentStatus.HOLDING, 10.0, [two])
@@ -239,12 +246,12 @@ def test_a_close_its_peers_do_not_answer_ends_the_process_as_usual(caplog):
     assert "the session's close timed out (close operation timed out!)" in caplog.text
 
 
-@pytest.mark.realtime  # (Zenoh's lease, which ends the dead UDP link, is on the wall clock: a starved listener loses its transport)
 def test_estimates_still_arrive_when_the_udp_path_dies(tmp_path):
     """In a network namespace of the test's: agent 1's estimates flow on UDP (best effort), then every
-    UDP packet is dropped. Zenoh goes on sending into the dead link until its lease ends it; the
-    reliable copy of every COPY_EVERY-th estimate, on TCP, arrives all the same. Judged on sequence
-    numbers, not on time."""
+    UDP packet is dropped. Zenoh goes on sending into the dead link; the reliable copy of every
+    COPY_EVERY-th estimate, on TCP, arrives all the same. Judged on sequence numbers, not on time
+    (the sessions' lease is long enough that no stall of a busy machine ends their TCP link: that
+    would lose copies in flight for the machine's sake, not the copies')."""
     need_netns()
     out = tmp_path / "cut.json"
     with NetNamespace(f"triswarm-cut-{os.getpid()}") as ns:

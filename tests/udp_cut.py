@@ -5,8 +5,9 @@ Zenoh session, agent 2's peer, records the sequence number of every estimate it 
     python tests/udp_cut.py OUT.json PORT_BASE
 
 Everything is counted, nothing timed: ``before`` estimates are published with UDP up (the stream
-must be flowing on it), then UDP is dropped and ``after`` more are published; the listener is then
-given up to 10 s to take the last reliable copy.
+must be flowing on it), then UDP is dropped and ``after`` more are published into the dead UDP link
+(its lease, a minute here, outlasts the test); the listener is then given up to 10 s to take the
+last reliable copy.
 """
 
 from __future__ import annotations
@@ -30,7 +31,15 @@ from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_confi
 from triswarm.protocol.codec import AgentStatus, decode_header, estimate_key  # noqa: E402
 
 PLAN, RATE_HZ, BEFORE, AFTER = 0x5EED, 200.0, 200, 400
+LEASE_S = 60
 TCP_AND_UDP = ("tcp", "udp")  # the layout with reliable copies (``copies_backup``)
+
+
+def unhurried(cfg):
+    """The companions' settings but a lease no stall of a busy machine outlasts: a starved process
+    whose TCP link expired would lose the copies in flight, which is the machine, not the copies."""
+    cfg.insert_json5("transport/link/tx/lease", str(LEASE_S * 1000))
+    return cfg
 
 
 def udp_packets() -> int:
@@ -51,10 +60,10 @@ async def main(out: Path, base: int) -> tuple:
         with lock:
             got.append(seq)
 
-    listener = zenoh.open(default_config(2, 2, base, protocols=TCP_AND_UDP))
+    listener = zenoh.open(unhurried(default_config(2, 2, base, protocols=TCP_AND_UDP)))
     sub = listener.declare_subscriber(estimate_key(swarm, 1), take)
     bus = Bus(swarm, 2)
-    bus.open(default_config(1, 2, base, protocols=TCP_AND_UDP), asyncio.get_running_loop())
+    bus.open(unhurried(default_config(1, 2, base, protocols=TCP_AND_UDP)), asyncio.get_running_loop())
     bus.join(1, PLAN, frozenset())
     try:
         xi = np.zeros(12)
