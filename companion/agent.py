@@ -42,6 +42,7 @@ from triswarm.protocol.stall import Stalls
 
 from triswarm.protocol.timesync import start_clock_problem
 
+from .autopilots.base import AutopilotError
 from .flight_controller import FlightController
 from .clock import OFFSET_STEP_US, kernel_clock
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
@@ -285,7 +286,10 @@ class Agent:
         try:
             await self._mission()
         except Exception as exc:  # the mission stops; the companion keeps routing and reporting
-            self.log.exception("mission stopped")
+            if isinstance(exc, AutopilotError):  # (the flight controller cannot be flown as it is: said)
+                self.log.warning(f"mission stopped: {exc}")
+            else:
+                self.log.exception("mission stopped")
             self.say(f"mission stopped: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
     async def _setup_fc(self) -> None:
@@ -438,7 +442,10 @@ class Agent:
                 self.say("flight controller back")
                 self.flight.set_phase(Phase.IDLE, "")
         except Exception as exc:  # (e.g. it did not answer its set-up): lost again; tried again when heard
-            self.log.exception("taking the flight controller back failed")
+            if isinstance(exc, AutopilotError):  # (it cannot be flown as it is: said, no traceback)
+                self.log.warning(f"taking the flight controller back failed: {exc}")
+            else:
+                self.log.exception("taking the flight controller back failed")
             self.fc_lost_since = time.monotonic()
             self.flight.set_phase(Phase.LOST, f"flight controller lost: {exc}")
             self.say(f"flight controller not taken back: {exc}", mavlink.MAV_SEVERITY_ERROR)

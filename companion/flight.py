@@ -277,22 +277,17 @@ class Flight:
         with an estimate younger than NB_TIMEOUT_S. A neighbour whose fresh estimates come counts
         without its liveliness token: under loss, Zenoh has been seen to lose a token's declaration
         for a whole flight while the estimates flowed (the estimates are the better sign of life:
-        they stop within NB_TIMEOUT_S when it dies).
-
-        In lockstep, alive means it has said its status for this plan: a liveliness token lives on
-        Zenoh's lease, a wall-clock watchdog that a starved machine expires for the living. There an
-        agent is gone when it says so (holding, idle) or, a neighbour, when it stops publishing for
-        the current step (the loop's watchdog, ``silent``)."""
+        they stop within NB_TIMEOUT_S when it dies)."""
         a = self.a
         if j == a.id:
             return True
         bus = a.bus
-        plans = a.plans_on_bus
-        status = bus.status_of(j, plans)
-        alive = status is not None if a.fc.answers.lockstep else j in bus.alive
+        alive = j in bus.alive
         if not alive and (j not in a.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
         starting = a.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
+        plans = a.plans_on_bus
+        status = bus.status_of(j, plans)
         if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):
             return False
         if j not in a.listen_to:
@@ -313,12 +308,10 @@ class Flight:
 
     def why_absent(self, j: int) -> str:
         bus = self.a.bus
+        if j not in bus.alive and j not in self.a.listen_to:
+            return "no liveliness"
+        lost = "" if j in bus.alive else "no liveliness, "
         status = bus.status_of(j, self.a.plans_on_bus)
-        sign = "no status" if self.a.fc.answers.lockstep else "no liveliness"
-        alive = status is not None if self.a.fc.answers.lockstep else j in bus.alive
-        if not alive and j not in self.a.listen_to:
-            return sign
-        lost = "" if alive else f"{sign}, "
         nb = bus.estimates.get(j)
         if nb is not None and nb.heard:
             return (f"{lost}status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms "

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink, plausible_unix_us
 
 from .actuators import ActuatorControlTarget
-from .autopilots.base import Autopilot
+from .autopilots.base import Autopilot, AutopilotError
 from .autopilots.registry import pick
 from .clock import Answers, FcClock
 from .links import MavLink
@@ -61,6 +61,7 @@ class FlightController:
         self.autopilot: Autopilot | None = None
         """What kind of flight controller it is (set up: ``setup``)."""
         self.identity = (-1, -1)
+        self._told_identity: tuple[int, int] | None = None
         """Its HEARTBEAT's autopilot and type fields."""
         self.link = MavLink("fc", url, sysid, COMP_ONBOARD)
         self.log = log
@@ -252,7 +253,9 @@ class FlightController:
         WAITING_SAY_EVERY_S. Returns the rate [Hz] the attitude comes at (``rate_hz`` if within 5 %
         of it). AutopilotError: it cannot be flown as it is."""
         await self.wait("a HEARTBEAT", lambda: self.heard, lambda: self.send(heartbeat()), say)
-        self.autopilot = ap = pick(self.profile, *self.identity, home=self.home)
+        await self.wait("a HEARTBEAT of an autopilot the companion knows", lambda: self._pick(say),
+                        lambda: self.send(heartbeat()), say)
+        ap = self.autopilot
         self.max_rpm, self.servo_deg = await ap.scaling(self, scaling, say)
         await ap.detect_simulator(self)
         self.answers.lockstep = ap.lockstep
@@ -279,6 +282,19 @@ class FlightController:
         gc.collect()
         gc.freeze()
         return attitude_hz
+
+    def _pick(self, say: Callable[[str], None]) -> bool:
+        """The ``Autopilot`` of the identity heard last (``registry.pick``); an unknown one is said
+        (once per identity) and waited past: one HEARTBEAT of nonsense on the link does not end the
+        set-up, and an autopilot the companion does not know is told every few seconds."""
+        try:
+            self.autopilot = pick(self.profile, *self.identity, home=self.home)
+            return True
+        except AutopilotError as exc:
+            if self._told_identity != self.identity:
+                self._told_identity = self.identity
+                say(str(exc))
+            return False
 
     async def wait(self, what: str, done: Callable[[], bool], poke: Callable[[], None] | None,
                     say: Callable[[str], None] | None) -> None:

@@ -18,7 +18,7 @@ neighbours' estimates are not in yet wait, and finish together when they come. A
 agent one command, never the loop.
 
 In lockstep there is no deadline for the neighbours: only a watchdog of NB_WATCHDOG_S of wall time
-counts a neighbour that has stopped publishing (dead, hung or cut off) as absent, and says so.
+counts a live neighbour that has stopped publishing (a hung process) as absent, and says so.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from triswarm.protocol.stall import Stalls
 from .flight import Phase
 
 LOCKSTEP_RECHECK_S = 0.1  # lockstep: while waiting for neighbours, look at who is alive this often [s, wall]
-NB_WATCHDOG_S = 3.0  # lockstep: a neighbour with no estimate for this long is gone [s, wall, while this process ran]
+NB_WATCHDOG_S = 3.0  # lockstep: a live neighbour with no estimate for this long has hung [s, wall]
 FORMATION_ERROR_EVERY = 10  # ticks between two samples of the formation error (for the 1 Hz report)
 
 
@@ -319,9 +319,9 @@ class ControlLoop:
         self._arm_timer()
 
     def _lockstep_recheck(self, t: Tick, now: float) -> bool:
-        """Lockstep, still waiting: drop the neighbours that stopped flying (their status tells),
-        and after NB_WATCHDOG_S of wall time (in which this process ran) those that never published
-        (dead, hung or cut off), saying so. True when the rest are in."""
+        """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness
+        and status tell), and after NB_WATCHDOG_S of wall time (in which this process ran) the live
+        ones that never published (hung), saying so. True when the rest are in."""
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
@@ -332,7 +332,7 @@ class ControlLoop:
                 for j in late:
                     f.silent.setdefault(j, t.t_p - tolerance)
                 a.log.warning(f"lockstep: no estimate for t_plan {t.t_p:.3f} from agent(s) {late} in "
-                              f"{NB_WATCHDOG_S:g} s of wall time: counted absent until they publish again")
+                              f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
             t.expected = [j for j in t.expected if j not in late]
         return a.bus.ready(t.expected, t.t_p, tolerance, a.plans_on_bus)
 

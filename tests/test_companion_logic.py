@@ -186,7 +186,7 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     estimates = {j: Neighbour() for j in (2, 3, 4)}
     bus = SimpleNamespace(alive={1, 4}, estimates=estimates, status_of=lambda j, plans: None)
     agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
-                            fc=SimpleNamespace(now_unix=lambda: 1000.0, answers=SimpleNamespace(lockstep=False)),
+                            fc=SimpleNamespace(now_unix=lambda: 1000.0),
                             params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
     flight = Flight(agent)
     flight.t_p = 50.0
@@ -201,33 +201,3 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
     estimates[2].plan_id = plan + 1  # another plan's estimates are no sign of this plan's neighbour
     assert not flight.usable(2)
-
-
-def test_in_lockstep_an_agent_is_present_by_its_status_not_its_liveliness():
-    """In lockstep a liveliness token says nothing: it lives on Zenoh's lease, a wall-clock watchdog
-    that a starved machine expires for the living (they would hold, and the flight on simulated
-    time would depend on the machine). An agent that said its status for this plan counts, token or
-    not, and is waited for; one that said none does not, token or not; one holding does not."""
-    from types import SimpleNamespace
-
-    from triswarm.companion.bus import Neighbour
-    from triswarm.companion.flight import Flight
-    from triswarm.protocol.codec import AgentStatus
-
-    plan = 7
-    said = {2: AgentStatus.FLYING, 4: AgentStatus.FLYING, 5: AgentStatus.HOLDING}
-    estimates = {j: Neighbour() for j in (2, 3)}
-    bus = SimpleNamespace(alive={3}, estimates=estimates, status_of=lambda j, plans: said.get(j))
-    agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2}), plans_on_bus=(plan,),
-                            fc=SimpleNamespace(now_unix=lambda: 1000.0, answers=SimpleNamespace(lockstep=True)),
-                            params=SimpleNamespace(values={"NB_TIMEOUT_S": 0.2}))
-    flight = Flight(agent)
-    flight.t_p = 50.0
-    nb = estimates[2]
-    nb.seq, nb.t_plan_s, nb.status, nb.plan_id, nb.xi = 1, 49.99, AgentStatus.FLYING, plan, np.zeros(12)
-    assert flight.usable(2) and flight.usable(2, check_fresh=False)  # no token: counted, and waited for
-    assert flight.usable(4)  # not listened to: its status
-    assert not flight.usable(3) and flight.why_absent(3) == "no status"  # a token, no status
-    assert not flight.usable(5)  # holding
-    agent.fc.answers.lockstep = False  # (in real time the tokens decide)
-    assert not flight.usable(4) and flight.usable(3) and flight.why_absent(4) == "no liveliness"

@@ -13,9 +13,9 @@ companions first (they wake to a silent flight controller; the SITL, woken secon
 the middle of a step with every companion's peer address timed out), then the SITL first (it wakes
 to companions that have not answered). Nobody may be called lost or dead, and the flight is judged
 on simulated time against the paper's bounds across both stalls: the clock must not step without
-the companions' answers. (Agents in processes of their own would lose each other's Zenoh sessions
-in such a stall, Zenoh's lease being on the wall clock; in lockstep that costs them nothing: their
-presence is their status, and an estimate lost with a session comes again, docs/companion.md.)"""
+the companions' answers. (With a process each, the agents' Zenoh sessions, whose lease is a watchdog on the wall clock
+too, may expire in such a stall and be opened again; an estimate lost with one is published again,
+docs/companion.md.)"""
 
 import json
 import math

@@ -216,3 +216,23 @@ def test_the_routing_keeps_back_what_a_ground_station_may_not_send_the_flight_co
         assert reached.count((255, "PARAM_REQUEST_READ")) == 1, reached
         gcs = cuf.stop()["links"]["gcs"]
     assert gcs["kept_from_fc"] == len(kept) and gcs["refused_own_system"] == 1
+
+
+def test_a_heartbeat_of_an_unknown_autopilot_is_waited_past_not_raised():
+    """The flight-controller fuzz sent a HEARTBEAT of autopilot 125 while the companion set its flight
+    controller up (again, on a loaded machine): the set-up raised, and the traceback went to the log.
+    Now the unknown autopilot is said once and the set-up waits for a HEARTBEAT it knows."""
+    from triswarm.companion.autopilots.triswarm import TriswarmSitl
+
+    fc = FlightController(1, "udpout:127.0.0.1:9", logging.getLogger("test"), lambda: None)
+    said = []
+    for autopilot in (125, 125):
+        hb = M.MAVLink_heartbeat_message(M.MAV_TYPE_TRICOPTER, autopilot, 0, 0, 0, 3)
+        hb.pack(new_codec(1, 1))
+        fc.take(hb, 0.0)
+        assert not fc._pick(said.append)
+    assert len(said) == 1 and "autopilot 125, which the companion does not know" in said[0]
+    hb = M.MAVLink_heartbeat_message(M.MAV_TYPE_TRICOPTER, M.MAV_AUTOPILOT_GENERIC, 0, 0, 0, 3)
+    hb.pack(new_codec(1, 1))
+    fc.take(hb, 0.0)
+    assert fc._pick(said.append) and isinstance(fc.autopilot, TriswarmSitl) and len(said) == 1
