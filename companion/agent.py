@@ -58,11 +58,11 @@ log = logging.getLogger("triswarm.companion")
 
 IDLE_FRACTION = 0.3  # idle rotor speed on the ground, as a fraction of hover
 FC_SILENT_S = 3.0
+"""Nothing from the flight controller for this long [s, wall clock]: it is lost. (It sends a heartbeat
+a second at least; a simulator in lockstep too while its clock stands.)"""
 REPUBLISH_AFTER_S = 1.0
 """In lockstep, an estimate not followed by another for this long (the clock stands) is sent again
 (``Bus.republish``)."""
-"""Nothing from the flight controller for this long [s, wall clock]: it is lost. (It sends a heartbeat
-a second at least; a simulator in lockstep too while its clock stands.)"""
 CLOCK_JUMP_US = REBOOT_JUMP_US
 """A sample whose boot time ran this much further [us] than the wall clock since the one before:
 the flight controller's clock jumped."""

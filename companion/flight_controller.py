@@ -61,8 +61,8 @@ class FlightController:
         self.autopilot: Autopilot | None = None
         """What kind of flight controller it is (set up: ``setup``)."""
         self.identity = (-1, -1)
-        self._told_identity: tuple[int, int] | None = None
         """Its HEARTBEAT's autopilot and type fields."""
+        self._told_identity: tuple[int, int] | None = None
         self.link = MavLink("fc", url, sysid, COMP_ONBOARD)
         self.log = log
         self.on_state = on_state
