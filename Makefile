@@ -74,6 +74,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_rates.py
 	$(ONE_CORE) $(PY) tests/bench/bench_zenoh_loss.py
 	$(ONE_CORE) $(PY) tests/bench/bench_ardupilot.py
+	$(ONE_CORE) $(PY) tests/bench/bench_px4.py
 
 # Every face of the companion under 100,000 inputs each (docs/testing.md#fuzzing): the inputs/s
 # and the counters per face; exits 1 on a crash, a counter off, or a companion that stopped answering

@@ -2,8 +2,9 @@
 
 The control loop hands an output rotor speeds [rad/s] and servo angles [rad] (three each) and the
 flight-controller time [boot us] of the telemetry they answer; the output turns them into what its flight
-controller takes. Adding another way (PX4's direct actuator setpoints over its DDS or Zenoh
-bridge, an ArduPilot script) is another class with these two methods; the loop does not change.
+controller takes. Adding another way is another class with these two methods; the loop does not
+change. (ArduPilot's script reads the same message; PX4's Zenoh link, ``px4_link``, turns it into
+PX4's direct actuator setpoints.)
 """
 
 from __future__ import annotations

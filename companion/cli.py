@@ -61,7 +61,7 @@ def companion(ctx, **given_params) -> None:
     """Fly one drone of a formation: MAVLink to its flight controller, Zenoh to its neighbours."""
     import typer
 
-    from .config import ConfigError, explicit_options, link_url, resolve_options, run_checks
+    from .config import ConfigError, explicit_options, fc_url, link_url, resolve_options, run_checks
 
     id, fc, gcs = given_params["id"], given_params["fc"], given_params["gcs"]
     config, check, plan_option = given_params.pop("config"), given_params.pop("check"), given_params.pop("plan_option")
@@ -90,7 +90,7 @@ def companion(ctx, **given_params) -> None:
             if len({i for i, _, _ in agents}) != len(agents):
                 raise ConfigError("every --id must be a different drone")
         values = resolve_options(config, params, given)
-        agents = [(i, link_url(f, "fc"), link_url(g, "gcs")) for i, f, g in agents[1:]]
+        agents = [(i, fc_url(f), link_url(g, "gcs")) for i, f, g in agents[1:]]
         for i, _, _ in agents:
             problem = BY_NAME["id"].check(i)
             if problem:

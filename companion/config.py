@@ -35,6 +35,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .px4_link import is_px4_zenoh
+from .px4_link import parse_url as parse_px4_url
 from .options import BY_FILE_KEY, OPTIONS, REQUIRED
 
 ZENOH_CHECK_TIMEOUT_S = 3.0
@@ -142,9 +144,20 @@ def resolve_options(config_path: Path | None, params: dict[str, Any], given: set
         problem = None if value is None or opt.check is None else opt.check(value)
         if problem:
             raise ConfigError(problem)
-    values["fc"] = link_url(values["fc"], "fc")
+    values["fc"] = fc_url(values["fc"])
     values["gcs"] = link_url(values["gcs"], "gcs")
     return values
+
+
+def fc_url(text: str) -> str:
+    """The flight-controller link: PX4's Zenoh bridge (``px4-zenoh://``), or a MAVLink link (``link_url``)."""
+    if is_px4_zenoh(text.strip()):
+        try:
+            parse_px4_url(text.strip())
+        except ValueError as exc:
+            raise ConfigError(f"--fc {exc}") from None
+        return text.strip()
+    return link_url(text, "fc")
 
 
 def link_url(text: str, what: str = "link") -> str:
@@ -232,6 +245,11 @@ def run_checks(config_path: Path | None, params: dict[str, Any], given: set[str]
 
 
 def _check_fc(c: Checks, url: str) -> None:
+    if is_px4_zenoh(url):
+        endpoint, namespace, domain, simulator = parse_px4_url(url)
+        c.ok("flight controller", f"PX4 over its Zenoh bridge: router {endpoint}, namespace {namespace or '(none)'}, "
+                                  f"domain {domain}{', a simulator' if simulator else ''}")
+        return
     kind, where, num = parse_link(url, "fc")
     if kind != "serial":
         c.ok("flight controller", f"{url} ({kind.upper()} {where} port {num})")

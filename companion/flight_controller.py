@@ -34,6 +34,7 @@ from .autopilots.base import Autopilot, AutopilotError
 from .autopilots.registry import pick
 from .clock import Answers, FcClock
 from .links import MavLink
+from .px4_link import Px4ZenohLink, is_px4_zenoh
 from .telemetry import Assembler, Sample, attitude_of, gyro_of, position_of
 from .timesync import EVERY_S as TIMESYNC_EVERY_S
 from .timesync import TimeSync
@@ -63,7 +64,9 @@ class FlightController:
         self.identity = (-1, -1)
         """Its HEARTBEAT's autopilot and type fields."""
         self._told_identity: tuple[int, int] | None = None
-        self.link = MavLink("fc", url, sysid, COMP_ONBOARD)
+        self.link = Px4ZenohLink("fc", url, sysid, COMP_ONBOARD) if is_px4_zenoh(url) else \
+            MavLink("fc", url, sysid, COMP_ONBOARD)
+        """MAVLink, or PX4's Zenoh bridge carrying the same (``px4_link``)."""
         self.log = log
         self.on_state = on_state
         self.heard = False
@@ -299,9 +302,11 @@ class FlightController:
     async def wait(self, what: str, done: Callable[[], bool], poke: Callable[[], None] | None,
                     say: Callable[[str], None] | None) -> None:
         """Until ``done()``, poking every 0.2 s and saying every WAITING_SAY_EVERY_S what for (not
-        with ``say`` None)."""
+        with ``say`` None). AutopilotError: the link cannot carry this flight controller."""
         since = told = time.monotonic()
         while not done():
+            if getattr(self.link, "fatal", None):
+                raise AutopilotError(self.link.fatal)
             if poke is not None:
                 poke()
             await asyncio.sleep(0.2)

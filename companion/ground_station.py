@@ -161,6 +161,10 @@ class GroundStation:
         a, fc_link = self.a, self.a.fc.link
         links = (fc_link, self.link)
         for msg in msgs:
+            if not fc_link.routes:  # (PX4's Zenoh bridge: its face's alone)
+                a.fc_heard_s = time.monotonic()
+                a.fc.take(msg, t_rx)
+                continue
             self.router.learn(fc_link, msg)
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if src == (a.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
@@ -176,7 +180,7 @@ class GroundStation:
     def from_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
         """Frames from the ground-station link: each sender's within its bucket, the rest shed."""
         fc_link = self.a.fc.link
-        links = (fc_link, self.link)
+        links = (fc_link, self.link) if fc_link.routes else (self.link,)
         now = time.monotonic()
         for msg in msgs:
             if not self.shed.take(link.peer, now):

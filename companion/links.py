@@ -69,6 +69,9 @@ line; the loop sends a command every 5 ms)."""
 class MavLink:
     """One MAVLink link. ``on_receive(link, messages, t_rx_unix_s)`` gets every parsed batch."""
 
+    routes = True
+    """Frames are routed through it (between it and the process's other links)."""
+
     def __init__(self, name: str, url: str, sysid: int, compid: int, client_timeout_s: float = CLIENT_TIMEOUT_S) -> None:
         self.name, self.url = name, url
         self.client_timeout_s = client_timeout_s

@@ -71,7 +71,8 @@ OPTIONS: tuple[Opt, ...] = (
     Opt("id", "int", None, "This drone's number in the swarm (its MAVLink system id). Repeat, with --fc and --gcs for "
         "each, to fly several simulated drones in this process.", _between("--id", 1, 255, "a MAVLink system id between 1 "
                                                                              "and 255"), per_agent=True, metavar="N"),
-    Opt("fc", "str", None, "Flight-controller link (pymavlink connection string, or a serial port DEVICE:BAUD).",
+    Opt("fc", "str", None, "Flight-controller link (pymavlink connection string, a serial port DEVICE:BAUD, or PX4's Zenoh bridge "
+        "px4-zenoh://ROUTER_HOST:PORT/NAMESPACE).",
         per_agent=True, metavar="URL"),
     Opt("gcs", "str", None, "Ground-station link (pymavlink connection string).", per_agent=True, metavar="URL"),
     Opt("plan", "path", None, "A plan file (TOML) to load at start; without one, the ground station uploads it "

@@ -13,6 +13,7 @@ from rich.table import Table
 from triswarm.protocol.frames import DEFAULT_HOME, parse_home
 
 from .errors import UserError, console, finite_option, user_errors
+from .stack import fc_link
 from .wind_options import Gusts, Turbulence, WindFrom, WindSpeed, wind_from_options
 
 
@@ -60,15 +61,17 @@ def sitl_up(
                                                         "simulated time (a crystal's error): every stamp they send, "
                                                         "TIMESYNC's too [ppm].")] = 0.0,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
-    autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated here) or ardupilot "
-                                                "(ArduPilot's own ArduCopter SITL firmware, with "
-                                                "deploy/ardupilot/, flying this plant).")] = "triswarm",
-    firmware: Annotated[Optional[Path], typer.Option(envvar="TRISWARM_ARDUCOPTER",
-                                                     help="With --autopilot ardupilot: the ArduCopter SITL binary "
-                                                          "(bin/arducopter of a SITL build).")] = None,
-    run_dir: Annotated[Optional[Path], typer.Option(help="With --autopilot ardupilot: the firmwares' run folders "
-                                                         "(default: sitl-runs/ beside the manifest).")] = None,
-    truth: Annotated[Optional[Path], typer.Option(help="With --autopilot ardupilot: log every vehicle's true "
+    autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated here), ardupilot "
+                                                "(ArduPilot's own ArduCopter SITL firmware, with deploy/ardupilot/) "
+                                                "or px4 (PX4's own px4_sitl_zenoh firmware, with deploy/px4/), "
+                                                "flying this plant.")] = "triswarm",
+    firmware: Annotated[Optional[Path], typer.Option(
+        help="With --autopilot ardupilot: the ArduCopter SITL binary (bin/arducopter of a SITL build; default "
+             "$TRISWARM_ARDUCOPTER). With --autopilot px4: the px4_sitl_zenoh build, its folder or its .tar.gz "
+             "(default $TRISWARM_PX4).")] = None,
+    run_dir: Annotated[Optional[Path], typer.Option(help="With --autopilot ardupilot or px4: the firmwares' run "
+                                                         "folders (default: sitl-runs/ beside the manifest).")] = None,
+    truth: Annotated[Optional[Path], typer.Option(help="With --autopilot ardupilot or px4: log every vehicle's true "
                                                        "position and attitude here (CSV, 50 Hz of simulated time).")] = None,
 ) -> None:
     """Start N simulated flight controllers; run until SIGINT/SIGTERM (or --duration-s)."""
@@ -86,17 +89,17 @@ def sitl_up(
         except OSError as exc:
             raise UserError(f"{option} {path}: cannot write it ({exc.strerror})") from None
 
-    if autopilot == "ardupilot":
-        return _ardupilot_up(n, first_id, manifest, home, physics_hz, spacing_m, stats, duration_s, param, seed,
+    if autopilot in ("ardupilot", "px4"):
+        return _firmware_up(autopilot, n, first_id, manifest, home, physics_hz, spacing_m, stats, duration_s, param, seed,
                              wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust), firmware, run_dir,
                              truth, quiet, speedup=speedup, lockstep=lockstep, fc_profile=fc_profile, rate_hz=rate_hz,
                              clock_drift_ppm=clock_drift_ppm)
     with user_errors(LinkOpenError):
         if autopilot != "triswarm":
-            raise UserError(f"--autopilot must be triswarm or ardupilot, got {autopilot!r}")
+            raise UserError(f"--autopilot must be triswarm, ardupilot or px4, got {autopilot!r}")
         for option, value in (("--firmware", firmware), ("--run-dir", run_dir), ("--truth", truth)):
             if value is not None:
-                raise UserError(f"{option} goes with --autopilot ardupilot")
+                raise UserError(f"{option} goes with --autopilot ardupilot or px4")
         if n < 1:
             raise UserError(f"-n must be at least 1, got {n}")
         finite_option("speedup", speedup, positive=True)
@@ -171,22 +174,26 @@ def _home(home: str) -> tuple[float, float, float]:
         raise UserError(str(exc) if str(exc).startswith("--home") else f"--home {home}: {exc}") from None
 
 
-def _ardupilot_up(n, first_id, manifest, home, physics_hz, spacing_m, stats, duration_s, param, seed, wind, firmware,
-                  run_dir, truth, quiet, **triswarm_only) -> None:
-    """``sitl up --autopilot ardupilot``: N ArduCopter SITL firmwares, this process their plant."""
+def _firmware_up(kind, n, first_id, manifest, home, physics_hz, spacing_m, stats, duration_s, param, seed, wind,
+                 firmware, run_dir, truth, quiet, **triswarm_only) -> None:
+    """``sitl up --autopilot ardupilot|px4``: N SITL firmwares of that autopilot, this process their plant."""
     import asyncio
 
     from triswarm.companion.state import write_json_atomically
     from triswarm.protocol.airframe import ParameterError
     from triswarm.sitl.ardupilot import ArduPilotOptions, FirmwareError, run_ardupilot
     from triswarm.sitl.firmware import find_firmware
+    from triswarm.sitl.px4 import Px4Options, find_package, run_px4
+
+    name = {"ardupilot": "ArduPilot", "px4": "PX4"}[kind]
 
     with user_errors(ParameterError):
         defaults = {"speedup": 1.0, "lockstep": False, "fc_profile": "triswarm", "rate_hz": None, "clock_drift_ppm": 0.0}
-        for name, value in triswarm_only.items():
-            if value != defaults[name]:
-                raise UserError(f"--{name.replace('_', '-')} is for triswarm's flight controllers: ArduPilot's firmware "
-                                "runs in real time, in lockstep with its plant, and streams what its companion asks for")
+        for option, value in triswarm_only.items():
+            if value != defaults[option]:
+                raise UserError(f"--{option.replace('_', '-')} is for triswarm's flight controllers: {name}'s firmware "
+                                "runs in real time, in lockstep with its plant, and streams at its own rates or what "
+                                "its companion asks for")
         if n < 1:
             raise UserError(f"-n must be at least 1, got {n}")
         if not 1 <= first_id <= 256 - n:
@@ -195,13 +202,13 @@ def _ardupilot_up(n, first_id, manifest, home, physics_hz, spacing_m, stats, dur
         finite_option("spacing-m", spacing_m, positive=True)
         finite_option("duration-s", duration_s, positive=True)
         try:
-            binary = find_firmware(firmware)
+            binary = find_firmware(firmware) if kind == "ardupilot" else find_package(firmware)
         except FirmwareError as exc:
             raise UserError(str(exc)) from None
-        opts = ArduPilotOptions(n=n, firmware=binary, run_dir=run_dir or manifest.resolve().parent / "sitl-runs",
-                                home=_home(home), first_id=first_id, spacing_m=spacing_m, physics_hz=physics_hz,
-                                wind=wind, seed=seed, params=tuple(_params(param)), duration_s=duration_s,
-                                truth_path=truth)
+        options, run = (ArduPilotOptions, run_ardupilot) if kind == "ardupilot" else (Px4Options, run_px4)
+        opts = options(n=n, firmware=binary, run_dir=run_dir or manifest.resolve().parent / "sitl-runs",
+                       home=_home(home), first_id=first_id, spacing_m=spacing_m, physics_hz=physics_hz,
+                       wind=wind, seed=seed, params=tuple(_params(param)), duration_s=duration_s, truth_path=truth)
 
         def ready(m: dict) -> None:
             try:
@@ -209,14 +216,14 @@ def _ardupilot_up(n, first_id, manifest, home, physics_hz, spacing_m, stats, dur
             except OSError as exc:
                 raise UserError(f"--manifest {manifest}: cannot write it ({exc.strerror})") from None
             if not quiet:
-                _table(m, f"{n} ArduCopter SITL firmwares flying triswarm's plant; run folders in {opts.run_dir}; "
+                _table(m, f"{n} {name} SITL firmwares flying triswarm's plant; run folders in {opts.run_dir}; "
                           f"manifest {manifest}")
-                console.print("pymavlink: mavutil.mavlink_connection(<link>); MAVSDK: tcp://HOST:PORT. Ctrl-C stops.",
-                              soft_wrap=True)
+                console.print("pymavlink: mavutil.mavlink_connection(<gcs link>); a triswarm companion: --fc "
+                              "<companion link>. Ctrl-C stops.", soft_wrap=True)
 
         say = (lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True, markup=False))
         try:
-            result = asyncio.run(run_ardupilot(opts, on_ready=ready, say=say))
+            result = asyncio.run(run(opts, on_ready=ready, say=say))
         except FirmwareError as exc:
             raise UserError(str(exc)) from None
         if stats is not None:
@@ -237,6 +244,6 @@ def _table(m: dict, title: str) -> None:
     table.add_column("gcs link")
     for v in m["vehicles"]:
         ned = v["start_ned_m"]
-        table.add_row(str(v["sysid"]), f"{ned[0]:.1f}, {ned[1]:.1f}", v["links"]["companion"]["pymavlink"],
+        table.add_row(str(v["sysid"]), f"{ned[0]:.1f}, {ned[1]:.1f}", fc_link(v["links"]["companion"]),
                       v["links"]["gcs"]["pymavlink"])
     console.print(table)

@@ -68,6 +68,12 @@ def free_ports(count: int, contiguous: bool = False, tries: int = 200, exclude: 
     raise StackError(f"no {count} free ports found below the ephemeral range ({lo}-{hi - 1})")
 
 
+
+def fc_link(link: dict) -> str:
+    """What a companion takes as --fc for a vehicle's companion link in a SITL manifest: its ``url``
+    (PX4's Zenoh bridge), else its pymavlink connection string."""
+    return link.get("url") or link["pymavlink"]
+
 @dataclass
 class Stack:
     """SITL and companions. Use as a context manager. With a plan file, the companions take it and
@@ -101,8 +107,9 @@ class Stack:
     link in the SITL's manifest (set before the companions start: ``companions=False``, then
     ``start_companion``)."""
     autopilot: str = "triswarm"
-    """The flight controllers: triswarm's simulated ones, or ArduPilot's SITL firmware (``sitl up
-    --autopilot ardupilot``, its binary ``firmware``), whose plant logs its truth to truth.csv."""
+    """The flight controllers: triswarm's simulated ones, or ArduPilot's or PX4's SITL firmware (``sitl
+    up --autopilot ardupilot|px4``, its binary or package ``firmware``), whose plant logs its truth to
+    truth.csv."""
     firmware: Path | None = None
     lockstep: bool = False
     """The SITL steps when every companion has answered (``sitl up --lockstep``): the stack runs on
@@ -156,8 +163,8 @@ class Stack:
         manifest_path = self.workdir / "manifest.json"
         if manifest_path.is_file():  # (a restart's old one; anything else there, the SITL says what)
             manifest_path.unlink()
-        if self.autopilot == "ardupilot":
-            own = ["--autopilot", "ardupilot", "--run-dir", str(self.workdir / "firmware"),
+        if self.autopilot in ("ardupilot", "px4"):
+            own = ["--autopilot", self.autopilot, "--run-dir", str(self.workdir / "firmware"),
                    "--truth", str(self.workdir / "truth.csv"), "--quiet",
                    *(["--firmware", str(self.firmware)] if self.firmware is not None else [])]
         else:
@@ -165,7 +172,7 @@ class Stack:
         self._spawn("sitl", [sys.executable, "-m", "triswarm.gcs.cli", "sitl", "up", "-n", str(self.n), "--manifest",
                              str(manifest_path), "--stats", str(self.workdir / "stats" / "sitl.json"), *own,
                              *self.sitl_args])
-        deadline = time.monotonic() + 60.0
+        deadline = time.monotonic() + (120.0 if self.autopilot != "triswarm" else 60.0)
         while not manifest_path.is_file():
             if self.procs["sitl"].poll() is not None or time.monotonic() > deadline:
                 self.__exit__(None, None, None)  # (first: the log is complete once the sitl is gone)
@@ -199,7 +206,7 @@ class Stack:
         links = []
         for i in agents:
             v = self.manifest["vehicles"][i - 1]
-            links += ["--id", str(i), "--fc", self.fc_links.get(i, v["links"]["companion"]["pymavlink"]),
+            links += ["--id", str(i), "--fc", self.fc_links.get(i, fc_link(v["links"]["companion"])),
                       "--gcs", f"udpin:127.0.0.1:{self.gcs_ports[i - 1]}"]
         extra = [arg for i in agents for arg in self.companion_args.get(i, [])]
         home = self.manifest["home"]

@@ -163,10 +163,7 @@ class JsonPhysics:
         self.on_step()
 
     def _log_truth(self, rows: np.ndarray) -> None:
-        pos, eta = rows[:, SENSOR_COLUMNS["position_m"]], rows[:, SENSOR_COLUMNS["euler_rad"]]
-        self.truth.write("".join(f"{self.sysids[i]},{self.t_s:.6f},{pos[i, 0]:.5f},{pos[i, 1]:.5f},"
-                                 f"{pos[i, 2]:.5f},{eta[i, 0]:.6f},{eta[i, 1]:.6f},{eta[i, 2]:.6f}\n"
-                                 for i in range(self.n)))
+        self.truth.write(truth_rows(self.sysids, self.t_s, rows))
 
     def watch(self, now: float) -> list[int]:
         """Vehicles whose firmware fell silent while the others wait: out of the clock now."""
@@ -179,6 +176,13 @@ class JsonPhysics:
                     left.append(i)
             self._step_if_due()
         return left
+
+
+def truth_rows(sysids: list[int], t_s: float, rows: np.ndarray) -> str:
+    """The truth log's lines (``TRUTH_COLUMNS``) of every vehicle's ``Plant.sensors`` row at ``t_s``."""
+    pos, eta = rows[:, SENSOR_COLUMNS["position_m"]], rows[:, SENSOR_COLUMNS["euler_rad"]]
+    return "".join(f"{sysid},{t_s:.6f},{pos[i, 0]:.5f},{pos[i, 1]:.5f},{pos[i, 2]:.5f},"
+                   f"{eta[i, 0]:.6f},{eta[i, 1]:.6f},{eta[i, 2]:.6f}\n" for i, sysid in enumerate(sysids))
 
 
 def split_params(params) -> tuple[dict[str, float], tuple[tuple[str, float], ...]]:
@@ -268,4 +272,4 @@ def _manifest(opts: ArduPilotOptions, firmwares: list[Firmware], start_time_utc:
             "truth": None if opts.truth_path is None else str(opts.truth_path)}
 
 
-__all__ = ["ArduPilotOptions", "FirmwareError", "JsonPhysics", "run_ardupilot", "TRUTH_COLUMNS"]
+__all__ = ["ArduPilotOptions", "FirmwareError", "JsonPhysics", "run_ardupilot", "TRUTH_COLUMNS", "truth_rows"]

@@ -104,8 +104,53 @@ class FirmwareSpec:
     extra_params: tuple[tuple[str, float], ...] = ()
 
 
+class FirmwareProcess:
+    """What every firmware's process has: ``proc``, its console log ``_log`` at ``log_path``."""
+
+    proc: subprocess.Popen | None
+    _log: object
+    log_path: Path
+    STOP_GRACE_S = STOP_GRACE_S
+
+    def last_words(self) -> str:
+        return last_words(self.log_path)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self) -> None:
+        """SIGTERM to its group, SIGKILL after STOP_GRACE_S (ArduPilot's ignores SIGTERM); wait for it."""
+        proc, self.proc = self.proc, None
+        stop_group(proc, self.STOP_GRACE_S)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+
+
+def last_words(log_path: Path) -> str:
+    """A firmware's last line in its console log, and where the log is."""
+    try:
+        lines = [ln for ln in log_path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        lines = []
+    return f"{lines[-1].strip() if lines else 'no output'} (log: {log_path})"
+
+
+def stop_group(proc: subprocess.Popen | None, grace_s: float) -> None:
+    """SIGTERM to a process's group, SIGKILL after ``grace_s``; wait for it."""
+    if proc is None:
+        return
+    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
+        signal_group(proc, sig)
+        try:
+            proc.wait(timeout=wait_s)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
 @dataclass
-class Firmware:
+class Firmware(FirmwareProcess):
     spec: FirmwareSpec
     proc: subprocess.Popen | None = None
     ports: dict[int, int] = field(default_factory=dict)
@@ -173,28 +218,3 @@ class Firmware:
                 return True
             time.sleep(0.05)
         return False
-
-    def last_words(self) -> str:
-        try:
-            lines = [ln for ln in self.log_path.read_text(errors="replace").splitlines() if ln.strip()]
-        except OSError:
-            lines = []
-        return f"{lines[-1].strip() if lines else 'no output'} (log: {self.log_path})"
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def stop(self) -> None:
-        """SIGTERM to its group, SIGKILL after STOP_GRACE_S (it ignores SIGTERM); wait for it."""
-        proc, self.proc = self.proc, None
-        if proc is not None:
-            for sig, wait_s in ((signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
-                signal_group(proc, sig)
-                try:
-                    proc.wait(timeout=wait_s)
-                    break
-                except subprocess.TimeoutExpired:
-                    continue
-        if self._log is not None:
-            self._log.close()
-            self._log = None

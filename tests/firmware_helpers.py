@@ -18,6 +18,7 @@ from .needs import missing
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_ARDUCOPTER = ROOT.parent / "shared" / "ardupilot" / "bin" / "arducopter"
+SHARED_PX4 = ROOT.parent / "shared" / "px4" / "px4_sitl_zenoh.tar.gz"
 
 
 def arducopter() -> Path:
@@ -27,6 +28,16 @@ def arducopter() -> Path:
     if not (path.is_file() and os.access(path, os.X_OK)):
         missing(f"no ArduCopter SITL binary at {path}: set TRISWARM_ARDUCOPTER to one (build it: "
                 "docs/flight-controllers.md, ArduPilot)")
+    return path
+
+
+def px4_package() -> Path:
+    """The px4_sitl_zenoh build, its folder or its .tar.gz (the test stops, skipped or failed, without one)."""
+    given = os.environ.get("TRISWARM_PX4")
+    path = Path(given) if given else SHARED_PX4
+    if not path.exists():
+        missing(f"no PX4 firmware at {path}: set TRISWARM_PX4 to a px4_sitl_zenoh build (its folder or its .tar.gz; "
+                "docs/flight-controllers.md, PX4)")
     return path
 
 

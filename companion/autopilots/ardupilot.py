@@ -27,7 +27,7 @@ import time
 from pymavlink import mavutil
 
 from triswarm.protocol.autopilots import ARDUCOPTER_GUIDED, takeoff_commands
-from triswarm.protocol.frames import geodetic_from_mavlink, origin_offset_e_m
+from triswarm.protocol.frames import geodetic_from_mavlink
 from triswarm.protocol.mavlink import mavlink
 
 from .base import Autopilot, AutopilotError, FcRequests, Say
@@ -106,15 +106,7 @@ class ArduCopter(Autopilot):
         on), and the distance from the swarm's home to it."""
         self.origin = None
         await fc.wait("its EKF origin", lambda: self.origin is not None, lambda: self._ask_origin(fc), say)
-        if self.home is None:
-            say("no swarm home (--home): positions are the flight controller's, from its own EKF origin")
-            return
-        self.position_offset_e_m = origin_offset_e_m(self.home, self.origin)
-        north, west, up = self.position_offset_e_m
-        if max(map(abs, self.position_offset_e_m)) > 0.01:
-            say(f"its EKF origin is {abs(north):.2f} m {'north' if north >= 0 else 'south'}, {abs(west):.2f} m "
-                f"{'west' if west >= 0 else 'east'} and {abs(up):.2f} m {'above' if up >= 0 else 'below'} the swarm's "
-                "home: positions are moved by that")
+        self.offset_from(self.home, self.origin, say)
 
     @staticmethod
     def _ask_origin(fc: FcRequests) -> None:

@@ -26,6 +26,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import ClassVar, Protocol
 
+from triswarm.protocol.frames import origin_offset_e_m
 from triswarm.protocol.mavlink import mavlink
 
 from ..actuators import ActuatorControlTarget
@@ -100,6 +101,20 @@ class Autopilot(ABC):
 
     async def ready(self, fc: FcRequests, say: Say) -> None:
         """Set-up of the kind's own once its telemetry flows (AutopilotError: it cannot be flown)."""
+
+    def offset_from(self, home: tuple[float, float, float] | None, origin: tuple[float, float, float], say: Say) -> None:
+        """``position_offset_e_m`` for a flight controller whose local positions are from ``origin``
+        (its EKF origin: latitude, longitude [deg], altitude [m]): the distance from the swarm's
+        ``home`` to it, said when it is more than a centimetre."""
+        if home is None:
+            say("no swarm home (--home): positions are the flight controller's, from its own EKF origin")
+            return
+        self.position_offset_e_m = origin_offset_e_m(home, origin)
+        north, west, up = self.position_offset_e_m
+        if max(map(abs, self.position_offset_e_m)) > 0.01:
+            say(f"its EKF origin is {abs(north):.2f} m {'north' if north >= 0 else 'south'}, {abs(west):.2f} m "
+                f"{'west' if west >= 0 else 'east'} and {abs(up):.2f} m {'above' if up >= 0 else 'below'} the swarm's "
+                "home: positions are moved by that")
 
     def streams(self, rate_hz: float) -> list[tuple[int, float]]:
         """(message id, interval [us]; -1: off) to ask for: the attitude and position at the control

@@ -25,4 +25,4 @@ def pick(profile: str, autopilot: int, vehicle_type: int, home: tuple[float, flo
         if kind is None:
             raise AutopilotError(f"the flight controller's HEARTBEAT says autopilot {autopilot}, which the companion "
                                  f"does not know (--fc-profile forces one of {', '.join(KINDS)})")
-    return kind(home) if kind is ArduCopter else kind()
+    return kind(home) if kind in (ArduCopter, Px4) else kind()

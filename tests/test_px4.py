@@ -1,0 +1,116 @@
+"""PX4's own firmware in the loop (px4_sitl_zenoh, ``sitl up --autopilot px4``): the companions fly
+it in offboard mode with direct actuator setpoints over its Zenoh bridge, from the ground.
+
+PX4 and the plant run at real time and the companions fly them as they would real flight
+controllers, so these are real-time tests. The formation is judged with the issue's bounds on
+PX4's own telemetry (EKF2, over MAVLink to the ground station) and the plant's truth beside it;
+the offboard loss on PX4's modes as its ground-station link says them (HEARTBEAT, once a second)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+import tomli_w
+import zenoh
+
+from triswarm.gcs.recorder import Recorder
+from triswarm.gcs.stack import Stack
+from triswarm.protocol import px4_msgs as px4
+from triswarm.protocol.mavlink import mavlink as MAV
+from triswarm.protocol.plan import plan_from_dict
+
+from .firmware_helpers import px4_package
+from .poll import poll
+from .stack_helpers import judge, judge_truth
+
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
+OFFBOARD_LOSS_S = 0.5
+"""COM_OF_LOSS_T of the shipped airframe (deploy/px4/)."""
+HEARTBEAT_S = 1.0
+TRUTH_BOUNDS = (0.25, 0.05)
+"""The plant's truth of the turning triangle: EKF2's estimate error comes on top of the telemetry's
+(measured 0.03-0.21 m and 0.01-0.04 rad; docs/flight-controllers.md)."""
+
+
+def plan_file(tmp_path, spec: dict):
+    path = tmp_path / "plan.toml"
+    path.write_text(tomli_w.dumps(spec))
+    return path, plan_from_dict(spec, str(path))
+
+
+def modes(rec: Recorder, sysid: int, since_unix: float = -math.inf) -> list[tuple[float, str, bool]]:
+    return [(t, px4.mode_name(mode), armed) for t, mode, armed in rec.modes.get(sysid, []) if t >= since_unix]
+
+
+def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_px4(tmp_path):
+    """Three PX4 firmwares, one companion process flying all three with --autostart: each drone
+    rests on the ground, the companion switches PX4 to offboard and takes it off with its own
+    commands, and the three fly a turning triangle from the plan's start. Judged on PX4's own
+    telemetry with the issue's bounds, and on the plant's truth. The firmware subscribes to what
+    the companion publishes with the very type hashes the companion computed from the fields."""
+    path, plan = plan_file(tmp_path, {
+        "name": "px4-three", "drones": 3, "duration_s": 40.0, "leader": {"position_m": [0.0, 0.0, 0.0]},
+        "formation": {"type": "rotating-polygon", "radius_m": 4.0, "altitude_m": 6.0, "rate_rad_s": 0.3}})
+    with Stack(path, tmp_path / "stack", 3, start_delay_s=20.0, rate_hz=100.0, agents_per_process=0,
+               autopilot="px4", firmware=px4_package()) as stack, Recorder(stack.manifest) as rec:
+        announced = subscriptions(stack.manifest["zenoh_router"])
+        start = stack.start_at
+        end = start + plan.duration_s
+        poll(lambda: rec.now() >= end, 20.0 + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
+        t_from = plan.settled_from_s
+        ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
+        history = {i: modes(rec, i) for i in (1, 2, 3)}
+    truth_ok, truth_report = judge_truth(plan, tmp_path / "stack" / "truth.csv", rec, start, t_from, plan.duration_s,
+                                         position_bound_m=TRUTH_BOUNDS[0], attitude_bound_rad=TRUTH_BOUNDS[1])
+    print(f"worst over [{t_from}, {plan.duration_s}] s: telemetry {report}, truth {truth_report}")
+    for i in (1, 2, 3):
+        ns = f"px4_{i}"
+        for topic, name in px4.TOPICS_IN.items():
+            assert announced.get(px4.topic_path(ns, "in", topic)) == px4.type_hash(name), (ns, topic, announced)
+        assert ("OFFBOARD", True) in [(m, a) for _, m, a in history[i]], history[i]
+    assert ok, f"telemetry over [{t_from}, {plan.duration_s}] s: {report}"
+    assert truth_ok, f"truth over [{t_from}, {plan.duration_s}] s: {truth_report}"
+
+
+def subscriptions(router: str) -> dict[str, str]:
+    """Topic -> type hash of every subscription the firmwares announce (their liveliness tokens)."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", f'["{router}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    found: dict[str, str] = {}
+    with zenoh.open(cfg) as session:
+        for reply in session.liveliness().get("@ros2_lv/**", timeout=5.0):
+            told = px4.announced(str(reply.ok.key_expr)) if reply.ok is not None else None
+            if told is not None and "/MS/" in str(reply.ok.key_expr):
+                found[told[0]] = told[2]
+    return found
+
+
+def test_a_hover_then_offboard_lost_on_px4(tmp_path):
+    """One drone hovers at 4 m. Its companion killed, PX4 terminates the flight (the shipped
+    COM_OBL_RC_ACT) within COM_OF_LOSS_T of the last command (said on its next HEARTBEAT:
+    MAV_STATE_FLIGHT_TERMINATION): the motors stop and the vehicle comes down, never up (the plant's
+    truth)."""
+    path, plan = plan_file(tmp_path, {
+        "name": "px4-hover", "drones": 1, "duration_s": 120.0, "leader": {"position_m": [0.0, 0.0, 0.0]},
+        "formation": {"type": "rotating-polygon", "radius_m": 0.0, "altitude_m": 4.0, "rate_rad_s": 0.0}})
+    with Stack(path, tmp_path / "stack", 1, start_delay_s=15.0, rate_hz=100.0, autopilot="px4",
+               firmware=px4_package()) as stack, Recorder(stack.manifest) as rec:
+        start = stack.start_at
+        poll(lambda: rec.now() >= start + 22.0, 15.0 + 22.0 + 60.0, "22 s of the hover", every_s=0.2)
+        ok, report = judge(plan, rec, start, 15.0, 22.0, position_bound_m=0.10, attitude_bound_rad=0.02)
+        assert ok, f"hover over [15, 22] s: {report}"
+
+        killed = time.time()
+        stack.procs["companion-1"].kill()
+        terminated = lambda: rec.heartbeats[1].system_status == MAV.MAV_STATE_FLIGHT_TERMINATION  # noqa: E731
+        poll(terminated, 10.0, "PX4's flight termination")
+        assert time.time() - killed <= OFFBOARD_LOSS_S + HEARTBEAT_S + 1.0, f"terminated {time.time() - killed:.2f} s on"
+        height = lambda: rec.samples.tracks(start)[1].position_m[-1][2]  # noqa: E731
+        poll(lambda: height() < 0.1, 30.0, "the vehicle on the ground", every_s=0.2)
+    truth = [line.split(",") for line in (tmp_path / "stack" / "truth.csv").read_text().splitlines()[1:]]
+    after = [float(r[4]) for r in truth if float(r[1]) >= (killed - stack.manifest["clock"]["boot_unix_s"])]
+    assert after and max(after) < 4.5 and after[-1] < 0.1, (max(after, default=None), after[-1:])
