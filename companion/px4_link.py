@@ -17,8 +17,9 @@ what the face says and hears over that bridge, in the face's own terms, so that 
   the collective thrust in PX4's linear thrust model, THR_MDL_FAC 0). PX4 bypasses its allocation
   in this mode and uses the thrust setpoint only to know the vehicle flies: its land detector,
   which without one takes a hover for a landing (and a failsafe then idles the motors). Asking for offboard mode first streams
-  offboard_control_mode for PRESTREAM_S (PX4 enters offboard only with its signal present); after
-  that the signal is the companion's commands: when they stop, PX4's offboard-loss failsafe acts.
+  offboard_control_mode for PRESTREAM_S (PX4 enters offboard only with its signal present) and on
+  until the companion's commands flow (HANDOVER_S at most); after that the signal is the companion's
+  commands: when they stop, PX4's offboard-loss failsafe acts.
 
 What the bridge cannot carry (parameters, message intervals, TIMESYNC, a ground station's frames) is
 dropped and counted (``not_carried_<type>``). The ground station keeps its own MAVLink link to PX4.
@@ -53,6 +54,8 @@ SCHEME = "px4-zenoh"
 PRESTREAM_S = 0.3
 """Before asking for offboard mode, offboard_control_mode is sent this long [s, wall] at PRESTREAM_HZ."""
 PRESTREAM_HZ = 20.0
+HANDOVER_S = 3.0
+"""After asking for offboard, its signal goes on until the face commands, for at most this long [s]."""
 ORIGIN_EVERY_S = 1.0
 """EKF2's origin is handed to the face when it changes, and this often [s, wall] besides."""
 NAN_CONTROLS = float("nan")
@@ -255,14 +258,24 @@ class Px4ZenohLink:
             target_component=1, source_system=self.sysid, source_component=self.compid, from_external=True))
 
     def _offboard_then(self, then: Callable[[], None]) -> None:
-        """offboard_control_mode for PRESTREAM_S, then ``then``."""
+        """offboard_control_mode at PRESTREAM_HZ: PRESTREAM_S, then ``then`` (the mode asked for), and on
+        until the face's commands carry it or HANDOVER_S have passed (an answer to the mode, or the
+        first command, that is late must not lose offboard on the way in)."""
         async def prestream():
+            period = 1.0 / PRESTREAM_HZ
             for _ in range(max(1, round(PRESTREAM_S * PRESTREAM_HZ))):
                 self._offboard_signal()
-                await asyncio.sleep(1.0 / PRESTREAM_HZ)
+                await asyncio.sleep(period)
             then()
-        if self._prestream is None or self._prestream.done():
-            self._prestream = asyncio.ensure_future(prestream())
+            commands = self.counters["tx_commands"]
+            for _ in range(round(HANDOVER_S * PRESTREAM_HZ)):
+                if self.counters["tx_commands"] > commands:
+                    return
+                self._offboard_signal()
+                await asyncio.sleep(period)
+        if self._prestream is not None and not self._prestream.done():
+            self._prestream.cancel()
+        self._prestream = asyncio.ensure_future(prestream())
 
     def _offboard_signal(self) -> None:
         self._put("offboard_control_mode", _DIRECT_ACTUATOR)

@@ -270,8 +270,10 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     (["--autopilot", "ardupilot", "--firmware", "/nonexistent/arducopter"], "/nonexistent/arducopter: not an executable"),
     (["--autopilot", "ardupilot", "--firmware", sys.executable, "--lockstep"], "--lockstep is for triswarm's"),
     (["--autopilot", "ardupilot", "--firmware", sys.executable, "--fc-profile", "px4"], "--fc-profile is for triswarm's"),
-    (["--autopilot", "betaflight"], "--autopilot must be triswarm or ardupilot"),
-    (["--truth", "t.csv"], "--truth goes with --autopilot ardupilot"),
+    (["--autopilot", "betaflight"], "--autopilot must be triswarm, ardupilot or px4"),
+    (["--truth", "t.csv"], "--truth goes with --autopilot ardupilot or px4"),
+    (["--autopilot", "px4", "--firmware", "/nonexistent/px4.tar.gz"], "/nonexistent/px4.tar.gz: no such file"),
+    (["--autopilot", "px4", "--firmware", sys.executable, "--lockstep"], "--lockstep is for triswarm's"),
 ])
 def test_sitl_up_refuses_what_ardupilot_cannot_do_in_one_sentence(tmp_path, args, sentence):
     result = run_cli("sitl", "up", "--manifest", str(tmp_path / "m.json"), *args)
