@@ -38,6 +38,8 @@ ends the face's set-up with that sentence, rather than a silent link.
 from __future__ import annotations
 
 import asyncio
+import math
+import struct
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -108,6 +110,10 @@ class Px4ZenohLink:
         self._prestream: asyncio.Task | None = None
         self._origin: tuple | None = None
         self._origin_said = 0.0
+        self._asked_mode: int | None = None
+        """The navigation state the face's newest DO_SET_MODE asked for."""
+        self._mode_ack = None
+        """(its accepted COMMAND_ACK, the navigation state) until a vehicle_status shows that state."""
 
     @property
     def up(self) -> bool:
@@ -117,7 +123,8 @@ class Px4ZenohLink:
 
     def open(self, loop: asyncio.AbstractEventLoop, on_receive: Callable) -> None:
         self._loop, self._on_receive = loop, on_receive
-        self.session = open_session(peer_config([], [self.endpoint], mode="client"))
+        # (a peer, not a client: a router not up yet is tried again and waited for, where a client fails)
+        self.session = open_session(peer_config([], [self.endpoint]))
         for topic, name in px4.TOPICS_OUT.items():
             prefix = f"{self.domain}{px4.topic_path(self.namespace, 'out', topic)}/{px4.dds_type(name)}"
             self._subs.append(self.session.declare_subscriber(
@@ -183,13 +190,19 @@ class Px4ZenohLink:
         except ValueError:
             self.counters[f"drop_malformed_{topic}"] += 1
             return
-        out = getattr(self, f"_{topic}")(msg)
-        if out is None:
-            return
-        out.pack(self.codec)  # (a frame of its own: what the face reads of a message is all there)
-        self.counters["rx"] += 1
         try:
-            self._on_receive(self, [out], t_rx)
+            out = getattr(self, f"_{topic}")(msg)
+            out = [] if out is None else out if isinstance(out, list) else [out]
+            for m in out:
+                m.pack(self.codec)  # (a frame of its own: what the face reads of a message is all there)
+        except (struct.error, ValueError, OverflowError):  # (values no MAVLink field holds: NaN counts, huge ones)
+            self.counters[f"drop_unsayable_{topic}"] += 1
+            return
+        if not out:
+            return
+        self.counters["rx"] += len(out)
+        try:
+            self._on_receive(self, out, t_rx)
         finally:
             if self.after_read is not None:
                 self.after_read()
@@ -206,7 +219,8 @@ class Px4ZenohLink:
     def _vehicle_local_position(self, m):
         """Its global reference as GPS_GLOBAL_ORIGIN, when it is one, has changed or was last said
         ORIGIN_EVERY_S ago (the odometry carries the position itself)."""
-        if not (m.xy_global and m.z_global):
+        if not (m.xy_global and m.z_global and abs(m.ref_lat) <= 90.0 and abs(m.ref_lon) <= 180.0
+                and math.isfinite(m.ref_alt)):
             return None
         origin = (round(m.ref_lat * 1e7), round(m.ref_lon * 1e7), round(m.ref_alt * 1000), m.ref_timestamp)
         now = time.monotonic()
@@ -216,6 +230,17 @@ class Px4ZenohLink:
         return mavlink.MAVLink_gps_global_origin_message(*origin[:3], origin[3])
 
     def _vehicle_status(self, m):
+        """HEARTBEAT, and after it the acceptance of a mode change it shows (held back until then)."""
+        heartbeat = self._heartbeat(m)
+        held, self._mode_ack = self._mode_ack, None
+        if held is None:
+            return heartbeat
+        if m.nav_state == held[1]:
+            return [heartbeat, held[0]]
+        self._mode_ack = held  # (a status from before the change: the answer waits for one after it)
+        return heartbeat
+
+    def _heartbeat(self, m):
         armed = m.arming_state == px4.ARMING_STATE_ARMED
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
         state = mavlink.MAV_STATE_CRITICAL if m.failsafe else \
@@ -233,9 +258,17 @@ class Px4ZenohLink:
         return mavlink.MAVLink_system_time_message(m.time_utc_usec, ((m.timestamp_sample or m.timestamp) // 1000) & 0xFFFFFFFF)
 
     def _vehicle_command_ack(self, m):
+        """COMMAND_ACK of this companion's commands; a mode change accepted is said once a
+        vehicle_status shows it: PX4 publishes the two apart, and a status from before the change
+        arriving after its answer would tell the face the mode it has just left."""
         if m.target_system != self.sysid or m.target_component != self.compid:
             return None  # (another's command: the ground station's, over MAVLink)
-        return mavlink.MAVLink_command_ack_message(m.command & 0xFFFF, m.result)
+        ack = mavlink.MAVLink_command_ack_message(m.command & 0xFFFF, m.result)
+        asked = self._asked_mode
+        if m.command == mavlink.MAV_CMD_DO_SET_MODE and m.result == mavlink.MAV_RESULT_ACCEPTED and asked is not None:
+            self._mode_ack = (ack, asked)
+            return None
+        return ack
 
     # -- what the face says -----------------------------------------------------------------------
 
@@ -246,6 +279,8 @@ class Px4ZenohLink:
             self.counters[f"not_carried_{msg.get_type()}"] += 1
             return
         params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+        if msg.command == mavlink.MAV_CMD_DO_SET_MODE:
+            self._asked_mode = px4.nav_state_of((int(msg.param2) << 16) | (int(msg.param3) << 24))
         if msg.command == mavlink.MAV_CMD_DO_SET_MODE and int(msg.param2) == px4.OFFBOARD_MAIN_MODE:
             self._offboard_then(lambda: self._command(msg.command, params))
         else:
