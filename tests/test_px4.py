@@ -1,8 +1,9 @@
 """PX4's own firmware in the loop (px4_sitl_zenoh, ``sitl up --autopilot px4``): the companions fly
 it in offboard mode with direct actuator setpoints over its Zenoh bridge, from the ground.
 
-PX4 and the plant run at real time and the companions fly them as they would real flight
-controllers, so these are real-time tests. The formation is judged with the issue's bounds on
+PX4 and the plant run at real time at most, in lockstep with the companions (the plant steps once
+PX4's estimates are answered), so the flights do not depend on how busy the machine is; the
+handovers and the offboard loss are on the wall clock, so these are real-time tests. The formation is judged with the issue's bounds on
 PX4's own telemetry (EKF2, over MAVLink to the ground station) and the plant's truth beside it;
 the offboard loss on PX4's modes as its ground-station link says them (HEARTBEAT, once a second)."""
 
