@@ -130,28 +130,6 @@ def open_router(port: int) -> zenoh.Session:
     return zenoh.open(cfg)
 
 
-def hear_the_loop(router: zenoh.Session, domain: int, index_of: dict[str, int], estimate: Callable[[int, int], None],
-                  command: Callable[[int], None]) -> None:
-    """What the plant's lockstep with the companions waits on (``px4_hil``), on the router, called on
-    Zenoh's thread: every PX4's vehicle_odometry (``estimate(vehicle index, its stamp [us])``) and
-    every companion's actuator_motors (``command(vehicle index)``)."""
-    def odometry(s: zenoh.Sample) -> None:
-        i = index_of.get(str(s.key_expr).split("/")[1])
-        if i is not None:
-            try:
-                estimate(i, int(px4.decode("VehicleOdometry", s.payload.to_bytes()).timestamp))
-            except ValueError:
-                pass
-
-    def motors(s: zenoh.Sample) -> None:
-        i = index_of.get(str(s.key_expr).split("/")[1])
-        if i is not None:
-            command(i)
-
-    router.declare_subscriber(f"{domain}/*/fmu/out/vehicle_odometry/**", odometry)
-    router.declare_subscriber(f"{domain}/*/fmu/in/actuator_motors/**", motors)
-
-
 def bridge_tables(namespace: str) -> tuple[str, str]:
     """(pub.csv, sub.csv) of a vehicle's bridge: the topics the companion reads and writes, under
     ``namespace``. (PX4's default table maps /fmu/in/vehicle_mocap_odometry and
@@ -261,9 +239,6 @@ async def run_px4(opts: Px4Options, on_ready: Callable[[dict], None] | None = No
     try:
         router_port = free_tcp_ports(1)[0]
         router = open_router(router_port)
-        hear_the_loop(router, opts.domain, {f"px4_{sysid}": i for i, sysid in enumerate(sysids)},
-                      lambda i, t_us: loop.call_soon_threadsafe(physics.odometry, i, t_us),
-                      lambda i: loop.call_soon_threadsafe(physics.commanded, i))
         instances = free_instances(opts.n)
         physics.listen(loop, [SIMULATOR_BASE_PORT + i for i in instances])
         stepping = asyncio.ensure_future(physics.run(stop))
@@ -297,7 +272,7 @@ async def run_px4(opts: Px4Options, on_ready: Callable[[dict], None] | None = No
             await stepping
         physics.close()
         if router is not None:
-            router.close()  # (its subscribers with it)
+            router.close()
         if truth is not None:
             truth.close()
     wall = time.monotonic() - wall0

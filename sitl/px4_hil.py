@@ -5,17 +5,13 @@ Each PX4 instance connects as a TCP client to its simulator port and takes MAVLi
 answers with HIL_ACTUATOR_CONTROLS (its output channels: motors 0..1, servos -1..1), sent when its
 outputs change.
 
-The plant steps on one clock for all, a sensor period (SENSOR_HZ) at a time, at most as fast as the
-wall clock; every PX4's clock is the plant's (each HIL_SENSOR sets it). A vehicle its companion
-drives (offboard, direct actuator setpoints: the plant hears them on the Zenoh router, ``commanded``)
-gets its outputs when the companion's setpoints arrive, each answering an estimate
-(vehicle_odometry, heard on the router too: ``odometry``). Before each step the plant waits until
-every such vehicle's estimates published up to the step before are answered: outputs stamped at or
-after them (``_answered``). So the loop through PX4 and its companion is in lockstep, with a delay
-of at most one sensor period however busy the machine: a busy machine slows the simulation, not
-the control. A vehicle whose estimate goes unanswered for ANSWER_WAIT_S of wall time (its companion
-stopped) is waited for no more until its companion commands again; one silent for
-FIRMWARE_SILENT_S leaves the plant (its motors stop; the others fly on).
+The plant steps on one clock for all, a sensor period (SENSOR_HZ) at a time, paced at real time;
+every PX4's clock is the plant's (each HIL_SENSOR sets it). The plant does not wait for PX4's
+outputs: PX4 sends them when they change, which in offboard mode with direct actuator setpoints is
+when the companion's setpoints arrive (at its estimator's rate, not the sensors'); a plant that
+waited for an answer to every HIL_SENSOR would stand still between them. Each step applies the
+newest outputs of every firmware heard in the last FIRMWARE_SILENT_S (a silent one's motors stop;
+the others fly on).
 
 What the firmware reads, made from the plant's true state with stated noise (``SensorNoise``):
 - HIL_SENSOR: accelerometer (specific force, FRD [m/s^2]), gyro (FRD [rad/s]), magnetometer (the
@@ -49,8 +45,6 @@ SENSOR_HZ = 250.0
 """HIL_SENSOR rate: PX4's simulated IMU rate (IMU_INTEG_RATE 250 in its SITL start-up)."""
 GPS_HZ = 10.0
 FIRMWARE_SILENT_S = 3.0
-ANSWER_WAIT_S = 2.0
-"""How long [s, wall] the plant waits for an estimate's answer before it waits for that vehicle no more."""
 SIM_SYSID, SIM_COMPID = 0, 51
 """What the simulator's frames say they are from (PX4's simulator_mavlink does not check)."""
 FIELDS_IMU_MAG_BARO = 0x1FFF
@@ -104,17 +98,10 @@ class HilPhysics:
         self.controls = np.zeros((self.n, 16))
         self.heard_at = [0.0] * self.n
         self.members: set[int] = set()
-        self.odometry_us = [0] * self.n
-        """Each PX4's newest estimate [its clock, us], as the router heard it (``odometry``)."""
-        self.controls_us = [0] * self.n
-        """Each PX4's newest outputs [its clock, us]."""
-        self.driven: set[int] = set()
-        """Vehicles whose companion commands them (its setpoints heard since it last fell silent)."""
-        self._answer = asyncio.Event()
         self.sensor_steps = 0
         self.on_sample = on_sample
         """Called with the plant's sensor rows after every sensor period (the truth log)."""
-        self.counters = {"bad_frames": 0, "left": 0, "joined": 0, "send_errors": 0, "unanswered": 0, "waits": 0}
+        self.counters = {"bad_frames": 0, "left": 0, "joined": 0, "send_errors": 0}
         self._loop: asyncio.AbstractEventLoop | None = None
 
     @property
@@ -185,53 +172,16 @@ class HilPhysics:
             if m.get_type() != "HIL_ACTUATOR_CONTROLS":
                 continue
             self.controls[i] = m.controls
-            self.controls_us[i] = max(self.controls_us[i], m.time_usec)
-            self._answer.set()
             self.heard_at[i] = time.monotonic()
             if i not in self.members:
                 self.members.add(i)
                 self.counters["joined"] += 1
 
-    def odometry(self, i: int, t_us: int) -> None:
-        """Vehicle i's PX4 published an estimate stamped ``t_us`` (its clock)."""
-        self.odometry_us[i] = max(self.odometry_us[i], t_us)
-        self._answer.set()
-
-    def commanded(self, i: int) -> None:
-        """Vehicle i's companion published actuator setpoints."""
-        self.driven.add(i)
-
-    def _unanswered(self, until_us: int) -> list[int]:
-        return [i for i in self.driven if i in self.members and self.conns[i] is not None
-                and self.controls_us[i] < self.odometry_us[i] <= until_us]
-
-    async def _answered(self, until_us: int) -> None:
-        """Until every estimate published up to ``until_us`` is answered (see the module's text)."""
-        deadline = None
-        while waiting := self._unanswered(until_us):
-            now = time.monotonic()
-            if deadline is None:
-                deadline = now + ANSWER_WAIT_S
-                self.counters["waits"] += 1
-            if now >= deadline:
-                self.driven.difference_update(waiting)
-                self.counters["unanswered"] += len(waiting)
-                return
-            self._answer.clear()
-            try:
-                await asyncio.wait_for(self._answer.wait(), deadline - now)
-            except asyncio.TimeoutError:
-                pass
-
     async def run(self, stop: asyncio.Event) -> None:
-        """Step the plant until ``stop``: a sensor period at a time, each once the estimates up to the
-        one before are answered, at most as fast as the wall clock."""
+        """Step the plant until ``stop``: a sensor period at a time, at most as fast as the wall clock."""
         wall0 = time.monotonic() - self.plant.time_s
-        previous_us = 0
         while not stop.is_set():
-            sent_us = self._send_sensors()
-            await self._answered(previous_us)
-            previous_us = sent_us
+            self._send_sensors()
             self._leave_silent()
             self._step()
             ahead_s = wall0 + self.plant.time_s - time.monotonic()
@@ -259,8 +209,7 @@ class HilPhysics:
         self.plant.advance(self.steps_per_sensor)
         self.sensor_steps += 1
 
-    def _send_sensors(self) -> int:
-        """HIL_SENSOR (and HIL_GPS when due) to every connected PX4; returns their stamp [us]."""
+    def _send_sensors(self) -> None:
         rows = self.plant.sensors()
         t_us = int(round(self.plant.time_s * 1e6)) + 1  # (PX4's clock starts above zero)
         gps = self.sensor_steps % self.gps_every == 0
@@ -276,7 +225,6 @@ class HilPhysics:
                 self.counters["send_errors"] += 1
         if self.on_sample is not None:
             self.on_sample(rows)
-        return t_us
 
     def hil_sensor(self, row: np.ndarray, t_us: int):
         col, nz, rng = SENSOR_COLUMNS, self.noise, self.rng
