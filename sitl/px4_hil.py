@@ -9,7 +9,9 @@ The plant steps on one clock for all, a sensor period (SENSOR_HZ) at a time, pac
 every PX4's clock is the plant's (each HIL_SENSOR sets it). The plant does not wait for PX4's
 outputs: PX4 sends them when they change, which in offboard mode with direct actuator setpoints is
 when the companion's setpoints arrive (at its estimator's rate, not the sensors'); a plant that
-waited for an answer to every HIL_SENSOR would stand still between them. Each step applies the
+waited for an answer to every HIL_SENSOR would stand still between them, and one that waited for
+the companions' answers to PX4's estimates would let PX4's UTC time, which is the host's, run away
+from the simulation whenever it waited. Each step applies the
 newest outputs of every firmware heard in the last FIRMWARE_SILENT_S (a silent one's motors stop;
 the others fly on).
 
