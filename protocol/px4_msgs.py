@@ -21,7 +21,6 @@ PX4's own bridge does with what it receives.
 from __future__ import annotations
 
 import functools
-import math
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -256,7 +255,3 @@ def _python(base: str, value):
     if not info.min <= value <= info.max:
         raise ValueError(f"{value} does not fit {base}")
     return value
-
-
-def finite(values) -> bool:
-    return all(math.isfinite(float(v)) for v in values)
