@@ -310,7 +310,7 @@ class Agent:
             self.log.info(f"agent {self.id}: no plan; waiting for one")
             return
         now = self.fc.now_unix()
-        if m.phase == "flying" and m.start_unix_s is not None and m.start_unix_s <= now:
+        if m.phase in ("flying", "landing") and m.start_unix_s is not None and m.start_unix_s <= now:
             self.say("resuming plan after restart")
             await self.flight.resume()
             return

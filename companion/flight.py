@@ -5,8 +5,10 @@ Phases: IDLE (no plan running), SCHEDULED (waiting for the common start time; ar
 before it with ``--autostart``), FLYING (the entry, the formation, or on the way back into it),
 HOLDING (no path from the leader through the agents that are alive, flying and fresh: the drone
 brakes to a stop and holds, pinned to its own reference, until a path returns; then it rejoins),
-LOST (the flight controller is silent, or its clock broke: nothing is commanded until it is heard
-again and set up anew; then the flight resumes as after a restart, ``Agent.take_fc_back``).
+LANDING (asked to land: it leaves the formation, brakes and descends on its own reference, and
+disarms once its flight controller says it is on the ground), LOST (the flight controller is
+silent, or its clock broke: nothing is commanded until it is heard again and set up anew; then the
+flight resumes as after a restart, ``Agent.take_fc_back``).
 
 What the reference follows (``tracking``, a one-agent formation in offsets from the leader):
 the entry (climb from where the drone rests, then blend into its row of the formation), the
@@ -24,6 +26,7 @@ import time
 import numpy as np
 
 from triswarm.protocol import model
+from triswarm.protocol.autopilots import COMPANION_MODES
 from triswarm.protocol.codec import AgentStatus
 from triswarm.protocol.formation import Formation, Kinematics, QuinticTransfer, RelativeTo, Rejoin, Row, Rows, rejoin_duration
 from triswarm.protocol.mavlink import mavlink
@@ -38,13 +41,25 @@ class Phase(enum.Enum):
     FLYING = "flying"        # in formation (or entering / rejoining it)
     HOLDING = "holding"      # no path to the leader: holding position
     LOST = "lost"            # the flight controller is lost: nothing commanded until it is back
+    LANDING = "landing"      # descending on its own reference, out of the formation
 
 
-PHASE_MODE = {Phase.IDLE: 0, Phase.SCHEDULED: 1, Phase.FLYING: 2, Phase.HOLDING: 3, Phase.LOST: 4}
-"""The companion's HEARTBEAT custom_mode in each phase."""
+PHASE_MODE = dict(zip(Phase, COMPANION_MODES))
+"""The companion's HEARTBEAT custom_mode in each phase (``Phase`` is in COMPANION_MODES' order)."""
 PHASE_STATUS = {Phase.IDLE: AgentStatus.IDLE, Phase.SCHEDULED: AgentStatus.IDLE, Phase.FLYING: AgentStatus.FLYING,
-                Phase.HOLDING: AgentStatus.HOLDING, Phase.LOST: AgentStatus.HOLDING}
-"""What the bus says of each phase (a lost agent publishes no estimate: its neighbours count it absent)."""
+                Phase.HOLDING: AgentStatus.HOLDING, Phase.LOST: AgentStatus.HOLDING, Phase.LANDING: AgentStatus.HOLDING}
+"""What the bus says of each phase (a lost agent publishes no estimate: its neighbours count it
+absent; a landing one is out of the formation)."""
+LAND_SINK_M = 0.3
+"""A landing's descent aims this far below the ground it started from [m]: the touchdown is the
+ground's, not the estimate's last centimetres, and the thrust falls once it is down."""
+LAND_DETECT_S = 5.0
+"""After the descent's end, the flight controller has this long [s, plan time] to say the vehicle
+is on the ground; then a vehicle the estimate puts within LAND_FORCE_BELOW_M of the ground is
+disarmed by force."""
+LAND_FORCE_BELOW_M = 0.3
+LAND_DISARM_RETRY_S = 1.0
+"""A disarm the flight controller refused or did not answer is asked again this long after [s, plan time]."""
 
 
 class Flight:
@@ -63,6 +78,15 @@ class Flight:
         self.flying: Formation | None = None
         """The formation being flown (the entry first): what a rejoin goes back into."""
         self.hold: Formation | None = None
+        """What a hold or a landing follows (absolute, with no leader)."""
+        self.land_asked = False
+        self.touchdown_s = math.inf
+        """Landing: the plan time [s] the descent reaches its lowest point."""
+        self.ground_z_m = 0.0
+        """Where the vehicle rested before its entry (height in the local frame [m]; the swarm's
+        home, if it did not start here): the ground a landing descends to."""
+        self._disarm_task: asyncio.Task | None = None
+        self._disarm_again_s = -math.inf
         self.silent: dict[int, float] = {}
         """Lockstep: the neighbours the watchdog counts absent, each with the instant [plan s] it had no
         estimate for; absent until one for that instant or a later one comes."""
@@ -73,7 +97,7 @@ class Flight:
 
     @property
     def in_flight(self) -> bool:
-        return self.phase in (Phase.FLYING, Phase.HOLDING)
+        return self.phase in (Phase.FLYING, Phase.HOLDING, Phase.LANDING)
 
     def set_phase(self, phase: Phase, reason: str) -> None:
         if phase == self.phase:
@@ -167,6 +191,7 @@ class Flight:
         a = self.a
         x = self.state_now()
         a.controller_reset(x)
+        self.ground_z_m = float(x[11])
         m = a.plans.mission
         m.phase = "flying"
         a.plans.save()
@@ -183,6 +208,14 @@ class Flight:
             return
         while self.state_now() is None:
             await asyncio.sleep(0.05)
+        if a.plans.mission.phase == "landing":  # (a landing goes on; one that is over ends)
+            if not fc.armed or fc.landed:
+                self.release("on the ground after the landing")
+                return
+            x = self.state_now()
+            a.controller_reset(x)
+            self.start_landing(a.plan_time(fc.last_sample.boot_us), a.plan_rfl.phi_r(x[None, :])[0])
+            return
         if not fc.armed or fc.landed:
             if not fc.armed:
                 await self.arm()
@@ -205,15 +238,17 @@ class Flight:
         if not self.in_flight:
             return
         if not fc.armed:
-            self.release("disarmed")
+            self.release("landed and disarmed" if self.phase == Phase.LANDING else "disarmed")
         elif (reason := fc.released()) is not None:
             self.release(reason)
 
     def release(self, reason: str) -> None:
+        landed = self.phase == Phase.LANDING or self.a.plans.mission.phase == "landing"
+        self.land_asked = False
         self.a.plans.mission.phase = "done"
         self.a.plans.save()
         self.set_phase(Phase.IDLE, "")
-        self.a.say(f"formation flight over: {reason}", mavlink.MAV_SEVERITY_WARNING)
+        self.a.say(f"formation flight over: {reason}", mavlink.MAV_SEVERITY_INFO if landed else mavlink.MAV_SEVERITY_WARNING)
 
     # -- hold and rejoin ------------------------------------------------------------------------
 
@@ -224,6 +259,63 @@ class Flight:
         absent = {j: self.why_absent(j) for j in range(1, n + 1) if not self.usable(j)}
         self.a.log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
         self.set_phase(Phase.HOLDING, reason)
+
+    # -- landing ----------------------------------------------------------------------------------
+
+    def ask_to_land(self) -> tuple[int, str]:
+        """MAV_CMD_NAV_LAND to the companion: (MAV_RESULT, why refused). The next tick begins the
+        landing (``start_landing``)."""
+        if self.phase == Phase.LANDING or (self.land_asked and self.in_flight):
+            return mavlink.MAV_RESULT_ACCEPTED, ""
+        if not self.in_flight:
+            return mavlink.MAV_RESULT_DENIED, ("land refused: the companion is not flying the vehicle (ask the "
+                                               "flight controller to land)")
+        self.land_asked = True
+        return mavlink.MAV_RESULT_ACCEPTED, ""
+
+    def start_landing(self, t_plan: float, xhat: np.ndarray) -> None:
+        """Out of the formation: brake and descend to LAND_SINK_M below the ground at a mean
+        LAND_SPEED, from xhat (the estimate x_r predicted to t_plan + lead)."""
+        self.land_asked = False
+        self.a.plans.mission.phase = "landing"
+        self.a.plans.save()
+        t0 = t_plan + self.a.lead_s
+        self.hold, self.touchdown_s = landing(t0, xhat, self.ground_z_m - LAND_SINK_M, self.a.params.values["LAND_SPEED"])
+        self.a.log.info(f"landing at t_plan {t_plan:.3f} from {xhat[11] - self.ground_z_m:.2f} m above the ground, "
+                        f"down at t_plan {self.touchdown_s:.1f}")
+        self.set_phase(Phase.LANDING, "asked to land")
+        self.a.say(f"landing: down in {self.touchdown_s - t0:.0f} s")
+
+    def landing_tick(self, t_p: float, xhat: np.ndarray) -> None:
+        """Landing, at the instant t_p [plan s] the estimate xhat is of: once the descent is over and
+        the flight controller says the vehicle is on the ground, disarm; if it has not said so
+        LAND_DETECT_S on, disarm by force a vehicle that is within LAND_FORCE_BELOW_M of the ground."""
+        if t_p < max(self.touchdown_s, self._disarm_again_s) or self._disarm_task is not None:
+            return
+        self._disarm_again_s = t_p + LAND_DISARM_RETRY_S
+        if self.a.fc.landed:
+            self._disarm_task = asyncio.ensure_future(self._disarm(force=False))
+        elif t_p >= self.touchdown_s + LAND_DETECT_S and xhat[11] - self.ground_z_m < LAND_FORCE_BELOW_M:
+            self.a.say(f"the flight controller has not detected the landing {LAND_DETECT_S:g} s after the descent: "
+                       "disarming by force", mavlink.MAV_SEVERITY_WARNING)
+            self._disarm_task = asyncio.ensure_future(self._disarm(force=True))
+
+    async def _disarm(self, force: bool) -> None:
+        try:
+            result = await self.a.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 21196.0 if force else 0.0)
+            if result == mavlink.MAV_RESULT_ACCEPTED:
+                if self.phase == Phase.LANDING:
+                    self.release("landed and disarmed")
+            else:
+                self.a.say(f"the flight controller refused to disarm after the landing ({result}): asking again in "
+                           f"{LAND_DISARM_RETRY_S:g} s", mavlink.MAV_SEVERITY_WARNING)
+        except TimeoutError:
+            self.a.say(f"no answer from the flight controller to the disarm after the landing: asking again in "
+                       f"{LAND_DISARM_RETRY_S:g} s", mavlink.MAV_SEVERITY_WARNING)
+        finally:
+            self._disarm_task = None
+
+    # -- rejoin -------------------------------------------------------------------------------------
 
     def rejoin(self, t_plan: float, source: Formation) -> None:
         """Into the formation from ``source`` (the braking/held trajectory, or the formation of the
@@ -327,6 +419,21 @@ def braking(t: float, x: np.ndarray) -> QuinticTransfer:
     row = lambda a: np.asarray(a, dtype=float).reshape(1, 3)  # noqa: E731
     return QuinticTransfer(row(p0), row(v0), row(p0 + v0 * T / 2.0), row(eta0), row(eta_dot0),
                            row([0.0, 0.0, eta0[2]]), t, T)
+
+
+def landing(t: float, x: np.ndarray, bottom_z_m: float, speed_m_s: float) -> tuple[Formation, float]:
+    """From x_r = [lambda_dot, eta_dot, eta, lambda] at plan time t: brake (as ``braking``) and
+    descend to rest at height ``bottom_z_m`` [m, local frame], level, over a quintic of mean speed
+    ``speed_m_s`` (its peak: 1.875 times that). Returns the reference and the plan time of the
+    descent's end (absolute, local frame; one agent)."""
+    stop = braking(t, x)
+    T = max(stop.duration_s, (float(x[11]) - bottom_z_m) / speed_m_s)
+    row = lambda a: np.asarray(a, dtype=float).reshape(1, 3)  # noqa: E731
+    level = row([0.0, 0.0, x[8]])
+    p_stop = stop.p1[0]
+    down = QuinticTransfer(row(p_stop), row([0.0, 0.0, 0.0]), row([p_stop[0], p_stop[1], bottom_z_m]),
+                           level, row([0.0, 0.0, 0.0]), level, t, T)
+    return Rejoin(stop, down, t, stop.duration_s), t + T
 
 
 class SharedEntry(Formation):

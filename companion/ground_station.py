@@ -109,6 +109,7 @@ class Params:
             "NB_WAIT_MS": ParamSpec(1.0, 0.0, 4.0),      # longest wait for the neighbours' estimates [ms]
             "REJOIN_S": ParamSpec(1.0, 0.2, 60.0),       # shortest way back into the formation [s]
             "REJOIN_ACCEL": ParamSpec(4.0, 0.5, 20.0),   # peak acceleration on the way back [m/s^2]
+            "LAND_SPEED": ParamSpec(0.5, 0.1, 2.0),      # mean descent speed of the companion's landing [m/s]
             "GCS_TLM_HZ": ParamSpec(20.0, 0.0, 1000.0),  # high-rate telemetry forwarded to the GCS [Hz]
             "PLAN_T_S": ParamSpec(math.nan, -math.inf, math.inf, read_only=True),  # plan time when read [s]
         }
@@ -268,6 +269,8 @@ class GroundStation:
                 result, reason = self.a.plans.start(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
         elif msg.command in (mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD):
             result, reason = self.a.plans.leader_command(msg)
+        elif msg.command == mavlink.MAV_CMD_NAV_LAND:  # (to the companion: it lands the vehicle itself)
+            result, reason = self.a.flight.ask_to_land()
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
         if reason:

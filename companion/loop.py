@@ -204,7 +204,9 @@ class ControlLoop:
                 a.flight.t_p = t.t_p
                 if a.plans.switch_due(t.t_plan):
                     a.switch_plan(t.t_plan)
-                (holding if a.flight.phase == Phase.HOLDING else flying).append(t)
+                if a.flight.land_asked:
+                    a.flight.start_landing(t.t_plan, t.xhat)
+                (holding if a.flight.phase in (Phase.HOLDING, Phase.LANDING) else flying).append(t)
             except Exception:
                 a.tick_failed()
         _references(flying)
@@ -225,13 +227,16 @@ class ControlLoop:
         return [t for t in flying if t.xi is not None]
 
     def _hold_step(self, t: Tick) -> None:
-        """Holding: pinned to its own absolute reference (the braking trajectory), no neighbours;
-        back to the formation as soon as a path from the leader returns."""
+        """Holding or landing: pinned to its own absolute reference (the braking or landing
+        trajectory), no neighbours. A hold goes back to the formation as soon as a path from the
+        leader returns; a landing ends on the ground (``Flight.landing_tick``)."""
         a = t.agent
         f = a.flight
         _references([t], tracking=f.hold, leader=no_leader)
         a.bus.publish_estimate(a.id, t.xhat - t.h, t.t_p, AgentStatus.HOLDING)
-        if f.has_path(a.plans.plan.schedule.at(t.t_p), f.presence()):
+        if f.phase == Phase.LANDING:
+            f.landing_tick(t.t_p, t.xhat)
+        elif f.has_path(a.plans.plan.schedule.at(t.t_p), f.presence()):
             f.rejoin(t.t_plan, a.rejoin_source())
         t.v = pinned_input(a.design, (t.xhat - t.h)[None, :], t.x0, t.gamma[None, :])[0]
 

@@ -136,7 +136,7 @@ class Plans:
         if self.store.problem:
             self.log.warning(self.store.problem)
         plan_file = load_plan_file(plan_path) if plan_path else None
-        if saved is not None and saved.agent == self.agent and (plan_file is None or saved.phase == "flying"
+        if saved is not None and saved.agent == self.agent and (plan_file is None or saved.phase in ("flying", "landing")
                                                                 or plan_id(plan_file.spec) == saved.plan_id):
             self.mission = saved
             self.plan = plan_of(saved.plan_spec, f"{self.store.path}")

@@ -64,7 +64,8 @@ class Mission:
     start_unix_s: float | None = None
     """When the plan (its take-off) starts, common to the swarm; None: not scheduled."""
     phase: str = "idle"
-    """idle, scheduled, flying or done (the flight controller took the vehicle back)."""
+    """idle, scheduled, flying, landing (the companion's own) or done (the flight controller took
+    the vehicle back, or the landing is over)."""
     leader_moves: list = field(default_factory=list)
     """The operator's leader commands in force, in order (see companion.leader_with_moves)."""
     formation_shift_s: float = 0.0

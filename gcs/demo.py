@@ -3,6 +3,9 @@
 `sitl up -n 6` and the six agents' companions (one process flying all six, as simulations of a swarm
 on one machine do) on loopback; the ground station uploads the plan over MAVLink, arms, takes off,
 starts the plan at one common time, lets the formation fly, lands, disarms and stops every process.
+With ``--autopilot ardupilot`` or ``px4`` a real firmware flies each drone between its companion and
+the plant. PX4's own controllers do not fly the tri-rotor (``protocol.autopilots.flies_itself``):
+there the companions' entry takes off from the ground and the companions land the drones.
 In real time by default; with ``--lockstep`` on simulated time, as fast as the machine allows (the
 times below are then the flight controllers' clock, which the ground station follows). The run folder gets gcs.tlog (everything the ground station
 received), plan.toml, run.json, and from the log (`triswarm plot`) telemetry.csv, summary.json and
@@ -24,8 +27,8 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn
 
 from triswarm.protocol import metrics
-from triswarm.protocol.autopilots import launch_mode_command
-from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink
+from triswarm.protocol.autopilots import flies_itself, launch_mode_command
+from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
 from .errors import UserError, console, err_console, require_positive, user_errors
@@ -39,12 +42,16 @@ STARTUP_S = 120.0  # companions load numba kernels and open Zenoh; two busy core
 ARM_READY_S = 120.0
 """A flight controller refuses to arm until its pre-arm checks pass: ArduCopter's EKF3 takes 40 s
 of its clock from boot to a position estimate."""
-ARDUPILOT_RATE_HZ = 100.0
-"""The companions' rate with ArduPilot: what its script delivers to the outputs in full."""
-ARDUPILOT_TRUTH_BOUNDS = (0.10, 0.02)
-ARDUPILOT_TELEMETRY_BOUNDS = (0.25, 0.05)
-"""With ArduPilot's firmware the formation is judged on the plant's truth (the paper's bounds) and
+FIRMWARE_RATE_HZ = 100.0
+"""The companions' rate with a real firmware: what ArduPilot's script delivers to the outputs in
+full (PX4's companions run at its estimator's rate whatever is asked)."""
+FIRMWARE_TRUTH_BOUNDS = (0.10, 0.02)
+FIRMWARE_TELEMETRY_BOUNDS = (0.25, 0.05)
+"""With a real firmware the formation is judged on the plant's truth (the paper's bounds) and
 never worse than these in the firmware's own telemetry (its EKF's estimates)."""
+FIRMWARES = {"ardupilot": "ArduPilot", "px4": "PX4"}
+COMPANION_LANDING_S = 120.0
+"""The companions' landings descend at their LAND_SPEED, 0.5 m/s: 41 s from the case study's 20 m."""
 SENSOR_NOISE = (("NOISE_POS_M", 0.005), ("NOISE_VEL_MS", 0.01), ("NOISE_ATT_RAD", 0.001), ("NOISE_GYRO_RADS", 0.005))
 """The estimators' noise the demo's flight controllers report with (1 sigma; what an RTK-GNSS-aided
 EKF gives), in every message, the ground station's included."""
@@ -114,11 +121,14 @@ def demo(
     fc_profile: Annotated[str, typer.Option(help="The flight controllers stream to the companions as this autopilot "
                                                  "does (sitl up --fc-profile): px4 (estimator instants, position at "
                                                  "100 Hz, up to 1.5 ms late), ardupilot or triswarm.")] = "px4",
-    autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated) or ardupilot "
-                                                "(ArduPilot's ArduCopter SITL firmware in the loop, in real time; "
-                                                "judged on the plant's truth and on the firmware's telemetry).")] = "triswarm",
-    firmware: Annotated[Optional[Path], typer.Option(envvar="TRISWARM_ARDUCOPTER",
-                                                     help="With --autopilot ardupilot: the ArduCopter SITL binary.")] = None,
+    autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated), ardupilot "
+                                                "(ArduPilot's ArduCopter SITL firmware in the loop) or px4 (PX4's "
+                                                "px4_sitl_zenoh firmware, flown over its Zenoh bridge); a firmware "
+                                                "runs in real time and is judged on the plant's truth and on its "
+                                                "telemetry.")] = "triswarm",
+    firmware: Annotated[Optional[Path], typer.Option(
+        help="With --autopilot ardupilot: the ArduCopter SITL binary (default $TRISWARM_ARDUCOPTER); with px4: the "
+             "px4_sitl_zenoh build, its folder or .tar.gz (default $TRISWARM_PX4).")] = None,
 ) -> None:
     """A plan (the paper's case study by default), whole stack, on this machine: sitl, the companions, the ground station."""
     with user_errors():
@@ -128,19 +138,22 @@ def demo(
         if max_rtf is not None and not (lockstep and math.isfinite(max_rtf) and max_rtf > 0):
             raise UserError(f"--max-rtf must be a positive number and goes with --lockstep, got {max_rtf}"
                             + ("" if lockstep else " without --lockstep"))
-        if autopilot not in ("triswarm", "ardupilot"):
-            raise UserError(f"--autopilot must be triswarm or ardupilot, got {autopilot!r}")
-        ardupilot = autopilot == "ardupilot"
-        if ardupilot:
+        if autopilot not in ("triswarm", *FIRMWARES):
+            raise UserError(f"--autopilot must be triswarm, ardupilot or px4, got {autopilot!r}")
+        real = autopilot in FIRMWARES
+        if real:
             from triswarm.sitl.firmware import FirmwareError, find_firmware
+            from triswarm.sitl.px4 import find_package
 
             if lockstep:
-                raise UserError("--lockstep is for triswarm's flight controllers: ArduPilot's firmware runs in real "
-                                "time (in lockstep with its plant)")
+                raise UserError(f"--lockstep is for triswarm's flight controllers: {FIRMWARES[autopilot]}'s firmware "
+                                "runs in real time")
             try:
-                firmware = find_firmware(firmware)
+                firmware = find_firmware(firmware) if autopilot == "ardupilot" else find_package(firmware)
             except FirmwareError as exc:
                 raise UserError(str(exc)) from None
+        elif firmware is not None:
+            raise UserError("--firmware goes with --autopilot ardupilot or px4")
         from triswarm.protocol.plan import plan_from_dict
 
         spec, label = read_plan_spec(plan_name)
@@ -159,11 +172,11 @@ def demo(
     n = plan.n_agents
     window = f"[{metrics.settled_window_start_s(plan, duration_s):g} s, {duration_s:g} s]"
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
-    if ardupilot:
-        console.print(f"ArduPilot's firmware ({firmware}) flying triswarm's plant, its EKF3's estimates what the "
-                      f"companions fly on; it passes if every drone stays within {ARDUPILOT_TRUTH_BOUNDS[0]:g} m and "
-                      f"{ARDUPILOT_TRUTH_BOUNDS[1]:g} rad of its place over {window} in truth, and "
-                      f"{ARDUPILOT_TELEMETRY_BOUNDS[0]:g} m and {ARDUPILOT_TELEMETRY_BOUNDS[1]:g} rad in its "
+    if real:
+        console.print(f"{FIRMWARES[autopilot]}'s firmware ({firmware}) flying triswarm's plant, its EKF's estimates "
+                      f"what the companions fly on; it passes if every drone stays within {FIRMWARE_TRUTH_BOUNDS[0]:g} m "
+                      f"and {FIRMWARE_TRUTH_BOUNDS[1]:g} rad of its place over {window} in truth, and "
+                      f"{FIRMWARE_TELEMETRY_BOUNDS[0]:g} m and {FIRMWARE_TELEMETRY_BOUNDS[1]:g} rad in its "
                       "telemetry", soft_wrap=True)
     else:
         console.print(f"flight controllers streaming as {fc_profile}, "
@@ -173,9 +186,9 @@ def demo(
                       soft_wrap=True)
     with contextlib.ExitStack() as running:
         try:
-            if ardupilot:
-                sitl_args, stack_args = ["--seed", "1"], {"autopilot": "ardupilot", "firmware": firmware,
-                                                          "rate_hz": ARDUPILOT_RATE_HZ}
+            if real:
+                sitl_args, stack_args = ["--seed", "1"], {"autopilot": autopilot, "firmware": firmware,
+                                                          "rate_hz": FIRMWARE_RATE_HZ}
             else:
                 sitl_args = ["--fc-profile", fc_profile, "--seed", "1"] + ([] if max_rtf is None else ["--max-rtf", f"{max_rtf:g}"])
                 sitl_args += [a for name, value in SENSOR_NOISE if noise for a in ("--param", f"{name}={value:g}")]
@@ -185,7 +198,8 @@ def demo(
         except StackError as exc:
             raise _fail(f"the stack did not start: {exc}") from None
         try:
-            link = running.enter_context(GroundLink(stack.endpoints(), tlog=run / "gcs.tlog"))
+            link = running.enter_context(GroundLink(stack.endpoints(), tlog=run / "gcs.tlog",
+                                                    fc_endpoints=stack.fc_endpoints()))
         except LinkError as exc:
             raise _fail(f"the ground station's link did not open: {exc}") from None
         ids = list(range(1, n + 1))
@@ -200,9 +214,17 @@ def demo(
         kind = {i: link.autopilot(i).heartbeat.autopilot for i in ids}
         _until_accepted(stack, link, "ready to take off", ids, lambda i: launch_mode_command(kind[i]), ARM_READY_S)
         _until_accepted(stack, link, "arm", ids, lambda i: (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,)), ARM_READY_S)
-        _step("takeoff", take_off_all(link, ids))
-        _wait(stack, "hover after takeoff", lambda: _which(
-            [i for i in ids if link.autopilot(i).landed_state != mavlink.MAV_LANDED_STATE_IN_AIR], "not in the air"), 30.0)
+        by_companion = [i for i in ids if not flies_itself(kind[i])]
+        if by_companion:  # (they take off with the entry, at the start)
+            console.print(f"takeoff: by the companions' entry at the start ({_which(by_companion, 'on the ground')})")
+            _step("clock (SYSTEM_TIME at 1 Hz)", command_all(link, by_companion, COMP_AUTOPILOT,
+                                                             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                             [float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME), 1e6]))
+        if by_itself := [i for i in ids if i not in by_companion]:
+            _step("takeoff", take_off_all(link, by_itself))
+            _wait(stack, "hover after takeoff", lambda: _which(
+                [i for i in by_itself if link.autopilot(i).landed_state != mavlink.MAV_LANDED_STATE_IN_AIR],
+                "not in the air"), 30.0)
         _wait(stack, "time from the flight controllers' clock",
               lambda: "no SYSTEM_TIME heard" if math.isnan(link.fc_now()) else "", 30.0)
         _step("local origins (logged: positions are judged from the swarm's home)",
@@ -224,14 +246,18 @@ def demo(
         info = json.loads((run / "run.json").read_text())
         info["formation_end_s"] = link.fc_now() - start
         (run / "run.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
-        _step("land", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_LAND, []))
+        if by_itself:
+            _step("land", command_all(link, by_itself, COMP_AUTOPILOT, mavlink.MAV_CMD_NAV_LAND, []))
+        if by_companion:  # (each lands its drone and disarms it on the ground)
+            _step("land (by the companions)", command_all(link, by_companion, COMP_ONBOARD, mavlink.MAV_CMD_NAV_LAND, []))
         _wait(stack, "landing and disarm", lambda: _which(
             [i for i in ids if link.autopilot(i).heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED], "still armed"),
-            60.0)
-        _step("disarm", command_all(link, ids, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]))
+            COMPANION_LANDING_S if by_companion else 60.0)
+        if by_itself:
+            _step("disarm", command_all(link, by_itself, COMP_AUTOPILOT, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]))
     console.print("every process stopped; making the figures from the log")
-    if ardupilot:
-        plot(run, position_bound_m=ARDUPILOT_TELEMETRY_BOUNDS[0], attitude_bound_rad=ARDUPILOT_TELEMETRY_BOUNDS[1],
-             truth_position_bound_m=ARDUPILOT_TRUTH_BOUNDS[0], truth_attitude_bound_rad=ARDUPILOT_TRUTH_BOUNDS[1])
+    if real:
+        plot(run, position_bound_m=FIRMWARE_TELEMETRY_BOUNDS[0], attitude_bound_rad=FIRMWARE_TELEMETRY_BOUNDS[1],
+             truth_position_bound_m=FIRMWARE_TRUTH_BOUNDS[0], truth_attitude_bound_rad=FIRMWARE_TRUTH_BOUNDS[1])
     else:
         plot(run)

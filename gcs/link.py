@@ -1,9 +1,12 @@
 """The ground station's MAVLink links: one per drone (to its companion, which routes to the flight
-controller), a reader thread, a .tlog of everything received, and waiting for answers.
+controller; and for a flight controller the companion does not route, PX4 flown over Zenoh, one to
+it beside), a reader thread, a .tlog of everything received, and waiting for answers.
 
 Endpoints come from a swarm manifest (``swarm.json``, written by ``triswarm stack`` and the demo):
 
     {"swarm": "paper-hexagon", "drones": [{"id": 1, "mavlink": "udpout:127.0.0.1:14601"}, ...]}
+
+(each drone with ``"fc_mavlink"`` too where its flight controller has a link of its own)
 
 or from ``--endpoint ID=URL`` (pymavlink connection strings).
 
@@ -67,8 +70,22 @@ def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> dict[
     return out
 
 
-def write_manifest(path: Path, swarm: str, endpoints: dict[int, str]) -> None:
-    data = {"swarm": swarm, "drones": [{"id": i, "mavlink": url} for i, url in sorted(endpoints.items())]}
+def fc_endpoints_of(manifest: Path | None) -> dict[int, str]:
+    """Drone id -> pymavlink URL of the flight controllers a manifest gives a link of their own
+    (``fc_mavlink``: PX4 flown over Zenoh); call after ``parse_endpoints`` has read it."""
+    if manifest is None:
+        return {}
+    try:
+        drones = json.loads(Path(manifest).read_text(encoding="utf-8"))["drones"]
+        return {int(d["id"]): str(d["fc_mavlink"]) for d in drones if "fc_mavlink" in d}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LinkError(f"{manifest}: not a swarm manifest ({exc.__class__.__name__}: {exc})") from None
+
+
+def write_manifest(path: Path, swarm: str, endpoints: dict[int, str], fc_endpoints: dict[int, str] | None = None) -> None:
+    fc = fc_endpoints or {}
+    data = {"swarm": swarm, "drones": [{"id": i, "mavlink": url, **({"fc_mavlink": fc[i]} if i in fc else {})}
+                                       for i, url in sorted(endpoints.items())]}
     Path(path).write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
 
@@ -122,10 +139,15 @@ class GroundLink:
     ``signing_key``: sign what is sent, check what is received signed (see the module's text)."""
 
     def __init__(self, endpoints: dict[int, str], tlog: Path | None = None, heartbeat_hz: float = 1.0,
-                 signing_key: bytes | None = None) -> None:
+                 signing_key: bytes | None = None, fc_endpoints: dict[int, str] | None = None) -> None:
+        """``endpoints``: each drone's companion. ``fc_endpoints``: the flight controllers reached
+        by a link of their own beside it (PX4, which its companion flies over Zenoh and whose MAVLink
+        it does not route): what is sent to such a drone's component 1 goes there."""
         from pymavlink import mavutil
 
         self.endpoints = dict(endpoints)
+        urls = {(i, COMP_ONBOARD): url for i, url in self.endpoints.items()}
+        urls.update({(i, mavlink.MAV_COMP_ID_AUTOPILOT1): url for i, url in (fc_endpoints or {}).items()})
         self.conns = {}
         self.codecs = {}
         self.seen: dict[tuple[int, int], Seen] = defaultdict(Seen)
@@ -140,16 +162,17 @@ class GroundLink:
         self._fc_now: dict[int, float] = {}
         self.tlog = None
         self._thread = threading.Thread(target=self._run, name="gcs-link", daemon=True)
-        for i, url in self.endpoints.items():
+        for key, url in urls.items():
             try:
-                self.conns[i] = mavutil.mavlink_connection(url, source_system=GCS_SYSID, source_component=GCS_COMPID,
-                                                           autoreconnect=True)
+                self.conns[key] = mavutil.mavlink_connection(url, source_system=GCS_SYSID, source_component=GCS_COMPID,
+                                                             autoreconnect=True)
             except (OSError, ValueError) as exc:  # what the socket or serial layer raises for this URL
                 self.close()
-                raise LinkError(f"cannot open the link to drone {i} at {url}: {exc}") from None
-            self.codecs[i] = new_codec(GCS_SYSID, GCS_COMPID)
+                what = "companion" if key[1] == COMP_ONBOARD else "flight controller"
+                raise LinkError(f"cannot open the link to drone {key[0]}'s {what} at {url}: {exc}") from None
+            self.codecs[key] = new_codec(GCS_SYSID, GCS_COMPID)
             if signing_key is not None:
-                setup_signing(self.codecs[i], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters,
+                setup_signing(self.codecs[key], signing_key, os.getpid() % 256, lambda msg_id: True, self.counters,
                               clock=time.time)
         if tlog is not None:
             try:
@@ -178,8 +201,16 @@ class GroundLink:
     # -- sending --------------------------------------------------------------------------------
 
     def send(self, drone: int, msg) -> None:
+        """To the drone's companion, or to its flight controller's own link if it has one and the
+        message is for component 1."""
+        key = (drone, mavlink.MAV_COMP_ID_AUTOPILOT1)
+        if key not in self.conns or getattr(msg, "target_component", None) != mavlink.MAV_COMP_ID_AUTOPILOT1:
+            key = (drone, COMP_ONBOARD)
+        self._write(key, msg)
+
+    def _write(self, key: tuple[int, int], msg) -> None:
         with self._send_lock:  # the reader thread sends heartbeats meanwhile
-            self.conns[drone].write(msg.pack(self.codecs[drone]))
+            self.conns[key].write(msg.pack(self.codecs[key]))
 
     def subscribe(self, sysid: int | None, compid: int | None, *types: str) -> Subscription:
         sub = Subscription(self, sysid, compid, set(types))
@@ -228,39 +259,39 @@ class GroundLink:
     # -- receiving ------------------------------------------------------------------------------
 
     def _run(self) -> None:
-        by_fd = {c.fd: (i, c) for i, c in self.conns.items() if getattr(c, "fd", None) is not None}
+        by_fd = {c.fd: (key, c) for key, c in self.conns.items() if getattr(c, "fd", None) is not None}
         next_heartbeat = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_heartbeat:
                 next_heartbeat = now + self._heartbeat_s
-                for i in self.conns:
-                    self._send_quietly(i, mavlink.MAVLink_heartbeat_message(
+                for key in self.conns:
+                    self._send_quietly(key, mavlink.MAVLink_heartbeat_message(
                         mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3))
             try:
                 ready, _, _ = select.select(list(by_fd), [], [], 0.05)
             except (OSError, ValueError):
                 break
             for fd in ready:
-                i, conn = by_fd[fd]
+                key, conn = by_fd[fd]
                 try:
                     data = conn.recv(65536)
                 except OSError:
                     self.counters["receive_errors"] += 1
                     continue
                 if data:
-                    self._take(i, bytes(data))
+                    self._take(key, bytes(data))
 
-    def _send_quietly(self, drone: int, msg) -> None:
+    def _send_quietly(self, key: tuple[int, int], msg) -> None:
         try:
-            self.send(drone, msg)
+            self._write(key, msg)
         except OSError:
             self.counters["send_errors"] += 1
 
-    def _take(self, drone: int, data: bytes) -> None:
+    def _take(self, key: tuple[int, int], data: bytes) -> None:
         try:
             with self._send_lock:  # a signed frame parsed may move the signing timestamp the senders use
-                msgs = self.codecs[drone].parse_buffer(data) or []
+                msgs = self.codecs[key].parse_buffer(data) or []
         except Exception:  # pymavlink raises MAVError and struct errors on garbage
             self.counters["bad_frames"] += 1
             return

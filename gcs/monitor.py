@@ -19,7 +19,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from triswarm.protocol.autopilots import is_ardupilot
+from triswarm.protocol.autopilots import COMPANION_MODES, is_ardupilot
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, mode_name
 
 from .errors import console, require_positive, user_errors
@@ -36,8 +36,6 @@ ONCE_WAIT_S = 5.0
 """``--once`` waits this long at most [s] for a whole second of every drone (``_heard_a_second``)."""
 TEXT_CHARS = 40
 PLAIN_WIDTH = 200
-PHASES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding", 4: "fc lost"}
-"""The companion's HEARTBEAT custom_mode (companion.PHASE_MODE)."""
 
 
 def _mode(heartbeat) -> str:
@@ -73,7 +71,7 @@ def rows(seen: Mapping[tuple[int, int], Seen], positions: Mapping[int, tuple[flo
             "armed": armed,
             "mode": None if hb is None else _mode(hb),
             "failsafe": bool(armed and hb.system_status == mavlink.MAV_STATE_CRITICAL) or _failsafe_said(fc_texts, now),
-            "phase": None if comp_hb is None else PHASES.get(comp_hb.custom_mode, f"phase {comp_hb.custom_mode}"),
+            "phase": None if comp_hb is None else COMPANION_MODES.get(comp_hb.custom_mode, f"phase {comp_hb.custom_mode}"),
             "form_err_m": named.get("FORM_ERRM"),
             "neighbours_ms": {j: named.get(f"NB{j}_AGEMS") for j in neighbours},
             "loop_hz": named.get("LOOP_HZ"),

@@ -97,7 +97,7 @@ def plot(
     run_entry = {
         "source": "tlog", "tlog": "gcs.tlog", "start_unix_s": start_unix_s, "log_hz": LOG_HZ,
         "span_s": [float(log.t_s[0]), float(log.t_s[-1])], "frames": log.tlog.frames,
-        "skipped_bytes": log.tlog.skipped_bytes, "skipped_runs": log.tlog.skipped_runs,
+        "skipped_bytes": log.tlog.skipped_bytes, "skipped_runs": log.tlog.skipped_runs, "unknown_messages": log.tlog.unknown,
     }
     with user_errors():
         try:

@@ -43,6 +43,8 @@ class TlogStats:
     """Bytes that were not part of a record that checks (garbage, truncated or corrupt frames)."""
     skipped_runs: int = 0
     """Separate stretches of skipped bytes."""
+    unknown: int = 0
+    """Whole records of messages this dialect does not know (an autopilot's own), passed over."""
 
 
 def read_tlog(data: bytes, stats: TlogStats) -> Iterator[tuple[float, object]]:
@@ -51,6 +53,17 @@ def read_tlog(data: bytes, stats: TlogStats) -> Iterator[tuple[float, object]]:
     pos, lost_at = 0, None
     while pos + TLOG_TIMESTAMP.size < len(data):
         msg, frame_len = _frame_at(mav, data, pos + TLOG_TIMESTAMP.size)
+        if isinstance(msg, mavlink.MAVLink_unknown):
+            end = pos + TLOG_TIMESTAMP.size + frame_len
+            if end == len(data) or (end + TLOG_TIMESTAMP.size < len(data)
+                                    and data[end + TLOG_TIMESTAMP.size] in _MAGICS):
+                stats.unknown += 1  # (a whole record, the next one right after it: not garbage)
+                if lost_at is not None:
+                    stats.skipped_bytes += pos - lost_at
+                    lost_at = None
+                pos = end
+                continue
+            msg = None  # (no CRC to check it by, and nothing after it that says it was whole)
         if msg is None:
             if lost_at is None:
                 lost_at = pos
@@ -71,8 +84,12 @@ def read_tlog(data: bytes, stats: TlogStats) -> Iterator[tuple[float, object]]:
         stats.skipped_bytes += len(data) - lost_at
 
 
+_MAGICS = (mavlink.PROTOCOL_MARKER_V1, mavlink.PROTOCOL_MARKER_V2)
+
+
 def _frame_at(mav, data: bytes, at: int) -> tuple[object | None, int]:
-    """The message whose frame starts at data[at] and its frame length, or (None, 0)."""
+    """The message whose frame starts at data[at] and its frame length, or (None, 0); a message
+    the dialect does not know is a ``MAVLink_unknown``, unchecked."""
     if at + 3 > len(data):
         return None, 0
     magic, payload_len, flags = data[at], data[at + 1], data[at + 2]
@@ -90,8 +107,6 @@ def _frame_at(mav, data: bytes, at: int) -> tuple[object | None, int]:
     try:
         msg = mav.decode(bytearray(data[at:at + frame_len]))
     except mavlink.MAVError:
-        return None, 0
-    if isinstance(msg, mavlink.MAVLink_unknown):  # no CRC to check it by
         return None, 0
     return msg, frame_len
 

@@ -155,7 +155,8 @@ class Stack:
         from .link import write_manifest
 
         self.swarm_manifest = self.workdir / "swarm.json"
-        write_manifest(self.swarm_manifest, Path(self.plan_path).stem if self.plan_path else "triswarm", self.endpoints())
+        write_manifest(self.swarm_manifest, Path(self.plan_path).stem if self.plan_path else "triswarm", self.endpoints(),
+                       self.fc_endpoints())
         return self
 
     def _start_sitl(self) -> dict:
@@ -199,6 +200,13 @@ class Stack:
     def endpoints(self) -> dict[int, str]:
         """The ground station's URL of each companion."""
         return {i: f"udpout:127.0.0.1:{self.gcs_ports[i - 1]}" for i in range(1, self.n + 1)}
+
+    def fc_endpoints(self) -> dict[int, str]:
+        """The ground station's URL of each flight controller its companion does not route (PX4's
+        own MAVLink port: its companion flies it over Zenoh); none for the others."""
+        if self.autopilot != "px4":
+            return {}
+        return {i: self.manifest["vehicles"][i - 1]["links"]["gcs"]["pymavlink"] for i in range(1, self.n + 1)}
 
     def companion_cmd(self, agents: list[int]) -> list[str]:
         plan = [] if self.plan_path is None else [str(self.plan_path), "--autostart",

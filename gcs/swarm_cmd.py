@@ -21,7 +21,7 @@ from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, enco
 
 from . import missions
 from .errors import UserError, console, err_console, user_errors
-from .link import GroundLink, LinkError, parse_endpoints
+from .link import GroundLink, LinkError, fc_endpoints_of, parse_endpoints
 from .scenarios import PlanArgument
 from .swarm import command_all, flight_clock, for_each, start_all, take_off_all, upload_all
 
@@ -55,6 +55,7 @@ def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[i
             raise UserError(f"--signing-key {exc}") from None
         try:
             endpoints = parse_endpoints(manifest, endpoint)
+            fc_endpoints = fc_endpoints_of(manifest)
         except LinkError as exc:
             raise UserError(str(exc)) from None
         unknown = sorted(set(drones or []) - set(endpoints))
@@ -62,7 +63,8 @@ def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[i
             raise UserError(f"--drone {unknown[0]}: not in the swarm (drones {', '.join(map(str, sorted(endpoints)))})")
         chosen = sorted(set(drones or endpoints))
         try:
-            link = GroundLink({i: endpoints[i] for i in chosen}, tlog=tlog, signing_key=key)
+            link = GroundLink({i: endpoints[i] for i in chosen}, tlog=tlog, signing_key=key,
+                              fc_endpoints={i: fc_endpoints[i] for i in chosen if i in fc_endpoints})
         except LinkError as exc:
             raise UserError(str(exc)) from None
     with link:
@@ -259,9 +261,18 @@ def takeoff(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones
 
 
 def land(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = None, tlog: Tlog = DEFAULT_TLOG,
-         signing_key: SigningKey = None) -> None:
-    """Land where they are (the flight controllers take over; the formation flight ends)."""
-    _vehicles("land", mavlink.MAV_CMD_NAV_LAND, [], manifest, endpoint, drone, tlog, signing_key)
+         signing_key: SigningKey = None,
+         companion: Annotated[bool, typer.Option(help="The companions land the drones themselves (brake, descend at "
+                                                      "their LAND_SPEED, disarm on the ground): for flight controllers "
+                                                      "whose own controllers do not fly the tri-rotor, as PX4 with "
+                                                      "the shipped airframe.")] = False) -> None:
+    """Land where they are (the flight controllers take over, or with --companion the companions
+    fly the descent; the formation flight ends)."""
+    if not companion:
+        _vehicles("land", mavlink.MAV_CMD_NAV_LAND, [], manifest, endpoint, drone, tlog, signing_key)
+        return
+    with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
+        report("land (by the companions)", command_all(link, chosen, COMP_ONBOARD, mavlink.MAV_CMD_NAV_LAND, []))
 
 
 def register(app: typer.Typer, plan_app: typer.Typer) -> None:

@@ -14,8 +14,20 @@ DEFAULT_TAKEOFF_HEIGHT_M = 2.5
 """A takeoff's height above home when none is given (triswarm's simulated TKO_ALT_M's default)."""
 
 
+COMPANION_MODES = {0: "idle", 1: "scheduled", 2: "flying", 3: "holding", 4: "fc lost", 5: "landing"}
+"""The companion's HEARTBEAT custom_mode: its flight's phase (``companion.flight.Phase``), by name."""
+
+
 def is_ardupilot(autopilot: int) -> bool:
     return autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+
+
+def flies_itself(autopilot: int) -> bool:
+    """Whether a flight controller's own controllers take the tri-rotor off and land it. PX4's do
+    not with the shipped airframe (deploy/px4/: its multicopter controllers are not tuned for
+    tilting rotors): there the companion's entry takes off from the ground, and the companion
+    lands it (MAV_CMD_NAV_LAND to the companion)."""
+    return autopilot != mavlink.MAV_AUTOPILOT_PX4
 
 
 def launch_mode_command(autopilot: int) -> tuple[int, tuple[float, ...]] | None:

@@ -101,6 +101,10 @@ def synthesize_tlog(path: Path, plan, offset_m: dict[int, np.ndarray]) -> int:
     data[300:300] = [garbage]
     data[501:501] = [truncated]
     data[902] = bytes(corrupt)
+    # messages the dialect does not know (an autopilot's own): whole records, passed over, not garbage
+    unknown = bytes([0xFD, 4, 0, 0, 0, 1, 1]) + (60000).to_bytes(3, "little") + b"\x01\x02\x03\x04" + b"\x00\x00"
+    for at in (2000, 1500, 1000):
+        data[at:at] = [TLOG_TIME.pack(round(records[at][0] * 1e6)) + unknown]
     data.append(data[-1][:20])  # cut off mid-frame
     path.write_bytes(b"".join(data))
     return len(garbage) + len(truncated) + len(corrupt) + 20
@@ -171,6 +175,7 @@ def test_summary_says_within_bounds(good_run, bounds):
     assert perf["worst_position_error_m"] <= bounds[0] and perf["worst_attitude_error_rad"] <= bounds[1]
     assert summary["run"]["source"] == "tlog" and summary["run"]["start_unix_s"] == START_UNIX_S
     assert summary["run"]["skipped_bytes"] == skipped_bytes and summary["run"]["skipped_runs"] == 4
+    assert summary["run"]["unknown_messages"] == 3
     assert summary["drones"] == DRONES and len(summary["design"]["K"]) == 6
     assert [d["clock"] for d in summary["per_drone"]] == ["SYSTEM_TIME", "SYSTEM_TIME", "tlog"]
     assert all(d["within_bounds"] and d["largest_gap_s"] < 0.11 for d in summary["per_drone"])

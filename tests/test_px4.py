@@ -15,9 +15,13 @@ import pytest
 import tomli_w
 import zenoh
 
+from triswarm.companion.flight import LAND_DETECT_S, LAND_SINK_M
+from triswarm.gcs.link import GroundLink
 from triswarm.gcs.recorder import Recorder
+from triswarm.gcs.swarm import command_all
 from triswarm.gcs.stack import Stack
 from triswarm.protocol import px4_msgs as px4
+from triswarm.protocol.mavlink import COMP_ONBOARD
 from triswarm.protocol.mavlink import mavlink as MAV
 from triswarm.protocol.plan import plan_from_dict
 
@@ -26,9 +30,10 @@ from .poll import poll
 from .stack_helpers import judge, judge_truth
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
-OFFBOARD_LOSS_S = 0.5
+OFFBOARD_LOSS_S = 1.0
 """COM_OF_LOSS_T of the shipped airframe (deploy/px4/)."""
 HEARTBEAT_S = 1.0
+LAND_SPEED = 0.5  # the companion's LAND_SPEED default [m/s]
 TRUTH_BOUNDS = (0.25, 0.05)
 """The plant's truth of the turning triangle: EKF2's estimate error comes on top of the telemetry's
 (measured 0.03-0.21 m and 0.01-0.04 rad; docs/flight-controllers.md)."""
@@ -44,12 +49,14 @@ def modes(rec: Recorder, sysid: int, since_unix: float = -math.inf) -> list[tupl
     return [(t, px4.mode_name(mode), armed) for t, mode, armed in rec.modes.get(sysid, []) if t >= since_unix]
 
 
-def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_px4(tmp_path):
+def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(tmp_path):
     """Three PX4 firmwares, one companion process flying all three with --autostart: each drone
     rests on the ground, the companion switches PX4 to offboard and takes it off with its own
     commands, and the three fly a turning triangle from the plan's start. Judged on PX4's own
     telemetry with the issue's bounds, and on the plant's truth. The firmware subscribes to what
-    the companion publishes with the very type hashes the companion computed from the fields."""
+    the companion publishes with the very type hashes the companion computed from the fields.
+    Then the ground station asks the companions to land: each descends (LAND_SPEED, 0.5 m/s) and
+    disarms its drone once PX4's land detector says it is down, or by force 5 s on."""
     path, plan = plan_file(tmp_path, {
         "name": "px4-three", "drones": 3, "duration_s": 40.0, "leader": {"position_m": [0.0, 0.0, 0.0]},
         "formation": {"type": "rotating-polygon", "radius_m": 4.0, "altitude_m": 6.0, "rate_rad_s": 0.3}})
@@ -61,7 +68,15 @@ def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_px4(tmp_pa
         poll(lambda: rec.now() >= end, 20.0 + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
         t_from = plan.settled_from_s
         ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
+        with GroundLink(stack.endpoints()) as link:
+            asked = rec.now()
+            landing = command_all(link, [1, 2, 3], COMP_ONBOARD, MAV.MAV_CMD_NAV_LAND, [])
+            down_s = (6.0 + LAND_SINK_M) / LAND_SPEED + LAND_DETECT_S + 5.0
+            poll(lambda: all(modes(rec, i) and not modes(rec, i)[-1][2] for i in (1, 2, 3)), down_s + 30.0,
+                 "the three disarmed", every_s=0.5)
+        disarmed = rec.now()
         history = {i: modes(rec, i) for i in (1, 2, 3)}
+        heights = {i: rec.samples.tracks(start)[i].position_m[-1][2] for i in (1, 2, 3)}
     truth_ok, truth_report = judge_truth(plan, tmp_path / "stack" / "truth.csv", rec, start, t_from, plan.duration_s,
                                          position_bound_m=TRUTH_BOUNDS[0], attitude_bound_rad=TRUTH_BOUNDS[1])
     print(f"worst over [{t_from}, {plan.duration_s}] s: telemetry {report}, truth {truth_report}")
@@ -72,6 +87,9 @@ def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_px4(tmp_pa
         assert ("OFFBOARD", True) in [(m, a) for _, m, a in history[i]], history[i]
     assert ok, f"telemetry over [{t_from}, {plan.duration_s}] s: {report}"
     assert truth_ok, f"truth over [{t_from}, {plan.duration_s}] s: {truth_report}"
+    assert all(ok for ok, _ in landing.values()), landing
+    assert disarmed - asked <= down_s, (asked, disarmed)  # (on PX4's clock)
+    assert all(h < 0.1 for h in heights.values()), heights
 
 
 def subscriptions(router: str) -> dict[str, str]:
