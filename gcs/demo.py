@@ -132,15 +132,12 @@ def demo(
             raise UserError(f"--autopilot must be triswarm or ardupilot, got {autopilot!r}")
         ardupilot = autopilot == "ardupilot"
         if ardupilot:
-            from triswarm.sitl.firmware import FirmwareError, find_firmware
+            from triswarm.sitl.firmware import find_firmware
 
             if lockstep:
                 raise UserError("--lockstep is for triswarm's flight controllers: ArduPilot's firmware runs in real "
                                 "time (in lockstep with its plant)")
-            try:
-                firmware = find_firmware(firmware)
-            except FirmwareError as exc:
-                raise UserError(str(exc)) from None
+            firmware = find_firmware(firmware)
         from triswarm.protocol.plan import plan_from_dict
 
         spec, label = read_plan_spec(plan_name)
