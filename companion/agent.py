@@ -45,6 +45,7 @@ from triswarm.protocol.timesync import start_clock_problem
 from .autopilots.base import AutopilotError
 from .flight_controller import FlightController
 from .clock import OFFSET_STEP_US, kernel_clock
+from .errors import CompanionError
 from .flight import PHASE_MODE, PHASE_STATUS, Flight, Phase
 from .ground_station import GroundStation, Params
 from .health import LoopHealth
@@ -68,7 +69,7 @@ CLOCK_JUMP_US = REBOOT_JUMP_US
 the flight controller's clock jumped."""
 
 
-class StartupError(Exception):
+class StartupError(CompanionError):
     """The companion cannot start as asked (a link it cannot open, an unreadable signing key, a Zenoh
     session it cannot open): one sentence for the operator, exit status 2."""
 

@@ -12,13 +12,16 @@ from typing import Annotated, Optional
 
 import typer
 
-from triswarm.protocol.airframe import ParameterError
-from triswarm.protocol.graph import GraphError
-from triswarm.protocol.plan import PlanError
+from triswarm.protocol.errors import ProtocolError
 
+from .errors import CompanionError
 from .options import BY_NAME, OPTIONS, PYTHON_TYPE, CompanionOptions
 
 app = typer.Typer(add_completion=False, rich_markup_mode=None)
+
+USER_ERRORS = (CompanionError, ProtocolError)
+"""What the companion reports as the operator's mistake (one line, exit status 2): the errors it and
+protocol/ raise on purpose. Anything else is a bug: its traceback."""
 
 
 def _cli_signature() -> inspect.Signature:
@@ -95,15 +98,10 @@ def companion(ctx, **given_params) -> None:
             problem = BY_NAME["id"].check(i)
             if problem:
                 raise ConfigError(problem)
-    except ConfigError as exc:  # what the operator wrote (anything else is a bug: its traceback)
-        print(f"triswarm-companion: error: {exc}", file=sys.stderr)
-        raise typer.Exit(code=2) from None
-    from .agent import StartupError
-    from .host import CountingLoop, agent_options, run_agents
+        from .host import CountingLoop, agent_options, run_agents
 
-    logging.basicConfig(level=logging.DEBUG if values["verbose"] else logging.INFO, stream=sys.stderr,
-                        format="%(asctime)s %(message)s")
-    try:
+        logging.basicConfig(level=logging.DEBUG if values["verbose"] else logging.INFO, stream=sys.stderr,
+                            format="%(asctime)s %(message)s")
         opts = CompanionOptions(**{o.name: values[o.name] for o in OPTIONS})
         every = agent_options(opts, [(opts.id, opts.fc, opts.gcs), *agents])
 
@@ -116,7 +114,7 @@ def companion(ctx, **given_params) -> None:
 
         with asyncio.Runner(loop_factory=CountingLoop) as runner:
             results = runner.run(main())
-    except (PlanError, ParameterError, GraphError, StartupError) as exc:  # (anything else is a bug: its traceback)
+    except USER_ERRORS as exc:  # what the operator wrote or gave (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None
     for o, result in zip(every, results):

@@ -35,6 +35,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .errors import CompanionError
 from .px4_link import is_px4_zenoh
 from .px4_link import parse_url as parse_px4_url
 from .options import BY_FILE_KEY, OPTIONS, REQUIRED
@@ -45,9 +46,9 @@ _URL_PREFIXES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:")
 SERIAL_PREFIX = "serial://"  # MAVSDK's form of a serial port
 
 
-class ConfigError(ValueError):
+class ConfigError(CompanionError, ValueError):
     """What the operator wrote (an option, a link, the configuration file) that cannot be used: one
-    sentence naming it. The companion's CLI reports these, and only these, as the user's mistake."""
+    sentence naming it."""
 
 
 def load_config(path: Path) -> dict[str, Any]:

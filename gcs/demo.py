@@ -142,16 +142,13 @@ def demo(
             raise UserError(f"--autopilot must be triswarm, ardupilot or px4, got {autopilot!r}")
         real = autopilot in FIRMWARES
         if real:
-            from triswarm.sitl.firmware import FirmwareError, find_firmware
+            from triswarm.sitl.firmware import find_firmware
             from triswarm.sitl.px4 import find_package
 
             if lockstep:
                 raise UserError(f"--lockstep is for triswarm's flight controllers: {FIRMWARES[autopilot]}'s firmware "
                                 "runs in real time")
-            try:
-                firmware = find_firmware(firmware) if autopilot == "ardupilot" else find_package(firmware)
-            except FirmwareError as exc:
-                raise UserError(str(exc)) from None
+            firmware = find_firmware(firmware) if autopilot == "ardupilot" else find_package(firmware)
         elif firmware is not None:
             raise UserError("--firmware goes with --autopilot ardupilot or px4")
         from triswarm.protocol.plan import plan_from_dict

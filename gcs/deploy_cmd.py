@@ -55,7 +55,7 @@ def deploy(
     source: Annotated[Path, typer.Option(help="The triswarm checkout to build and take deploy/ from.")] = SOURCE,
 ) -> None:
     """Install the companion on onboard computers over SSH: wheel, configuration, key, systemd unit; then check."""
-    with user_errors(DeployError):
+    with user_errors():
         if (host is None) == (inventory is None):
             raise DeployError("give either --host USER@HOST with --drone N, or --inventory FILE")
         if jobs < 1:

@@ -20,12 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import GcsError
+
 DEFAULT_ROOT = "/opt/triswarm"
 SERVICE = "triswarm-companion.service"
 SOURCE = Path(__file__).resolve().parents[1]   # the checkout this triswarm runs from
 
 
-class DeployError(Exception):
+class DeployError(GcsError):
     """A mistake in what was asked (one sentence); the command exits with status 2."""
 
 

@@ -1,11 +1,11 @@
 """How the operator's CLI reports: its consoles, numbers in tables, and a user's mistake as one sentence and
 exit status 2.
 
-A user's mistake is an exception of one of the project's own user-error types (USER_ERRORS, and what a
-command adds: ``user_errors(DeployError)``): raised where the user's input is parsed or the user's files are
-read, with a sentence that names the option or the file. Anything else, a ValueError or an OSError from deep
-inside included, is a bug or a fault of the machine and is shown as one (a traceback, exit status 1): never as
-the user's mistake."""
+A user's mistake is an error one of triswarm's layers raises on purpose, with a sentence that names the option
+or the file: each layer's errors derive from its base (GcsError here, UserError among them; SitlError,
+CompanionError, ProtocolError), and a command catches those bases once (``user_errors``). Anything else, a
+ValueError or an OSError from deep inside included, is a bug or a fault of the machine and is shown as one (a
+traceback, exit status 1): never as the user's mistake."""
 
 from __future__ import annotations
 
@@ -15,28 +15,34 @@ import math
 import typer
 from rich.console import Console
 
-from triswarm.protocol.errors import FormationError, GraphError, ParameterError, PlanError
+from triswarm.companion.errors import CompanionError
+from triswarm.protocol.errors import ProtocolError
+from triswarm.sitl.errors import SitlError
 
 console = Console()
 err_console = Console(stderr=True)
 
 
-class UserError(Exception):
+class GcsError(Exception):
+    """The base of every error the ground station raises on purpose: one sentence for the operator."""
+
+
+class UserError(GcsError):
     """A mistake in what the operator asked for (exit status 2)."""
 
 
-USER_ERRORS: tuple[type[Exception], ...] = (UserError, PlanError, ParameterError, FormationError, GraphError)
-"""The user-error types every command reports as one sentence: the CLI's own, and those the plan, the airframe,
-the formation design and the graphs raise for what a plan file or an option says."""
+USER_ERRORS: tuple[type[Exception], ...] = (GcsError, SitlError, CompanionError, ProtocolError)
+"""The layers' bases, which every command reports as one sentence: the ground station's own, the simulator's,
+the companion's modules', and protocol/'s (the plan, the airframe, the formation design, the graphs)."""
 
 
 @contextlib.contextmanager
-def user_errors(*also: type[Exception]):
-    """Turn a user's mistake (USER_ERRORS, and the types in ``also``) into one sentence on stderr and exit
-    status 2, never a traceback. Every other exception passes: a bug shows as a bug."""
+def user_errors():
+    """Turn a user's mistake (USER_ERRORS) into one sentence on stderr and exit status 2, never a traceback.
+    Every other exception passes: a bug shows as a bug."""
     try:
         yield
-    except (*USER_ERRORS, *also) as exc:
+    except USER_ERRORS as exc:
         err_console.print(f"triswarm: error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=2) from None
 

@@ -32,6 +32,8 @@ from pathlib import Path
 
 from triswarm.protocol.mavlink import COMP_ONBOARD, SIGNATURE_REFUSED, mavlink, new_codec, setup_signing
 
+from .errors import GcsError
+
 GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190, as ground stations do
 
@@ -40,7 +42,7 @@ NETWORK_SCHEMES = ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin")
 """pymavlink's connection strings that name a HOST:PORT (the others are serial devices and files)."""
 
 
-class LinkError(Exception):
+class LinkError(GcsError):
     """An endpoint that cannot be opened or a manifest that cannot be read (one sentence)."""
 
 

@@ -10,6 +10,7 @@ from typing import Callable
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanItem, field_value
 
+from .errors import GcsError
 from .link import GroundLink
 
 MISSION = mavlink.MAV_MISSION_TYPE_MISSION
@@ -106,8 +107,8 @@ def clear(link: GroundLink, drone: int, timeout_s: float = 1.0, retries: int = 5
     return Outcome(drone, False, f"no answer after {retries} retries")
 
 
-class NoAnswer(TimeoutError):
-    pass
+class NoAnswer(GcsError, TimeoutError):
+    """A drone that did not answer a mission request, however often asked (one sentence)."""
 
 
 def _ask(link, drone, sub, type_, make, accept, timeout_s, retries):

@@ -39,6 +39,8 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import GcsError
+
 DEFAULT_ROUTER_PORT = 7447
 DEFAULT_DAYS = 825      # leaf certificates (the CA/Browser Forum's old ceiling)
 CA_DAYS = 3650          # the CA outlives its certificates
@@ -52,7 +54,7 @@ _SWARM = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 _DNS = re.compile(r"(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*")
 
 
-class PkiError(ValueError):
+class PkiError(GcsError, ValueError):
     """Something the operator asked for cannot be made (one sentence)."""
 
 

@@ -36,7 +36,7 @@ def init(
     OUT/agent-<i>.{pem,key}, OUT/gcs.{pem,key}, and OUT/zenoh/router-<host>.json5,
     OUT/zenoh/agent-<i>.json5, OUT/zenoh/gcs.json5. Re-running keeps the CA and every certificate
     still valid, makes what is missing and rewrites the configs."""
-    with user_errors(pki.PkiError):
+    with user_errors():
         if not router:
             raise UserError("at least one --router HOST[:PORT] is needed")
         report = pki.init(out, swarm, drones, router, days=days, force=force, cert_dir=cert_dir, listen_host=listen)

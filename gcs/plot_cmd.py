@@ -49,11 +49,11 @@ def plot(
     from triswarm.protocol import metrics
 
     from . import plots, report
-    from .runlog import RunLogError, read_run_log
+    from .runlog import read_run_log
 
-    from .truth import TruthError, read_truth
+    from .truth import read_truth
 
-    with user_errors(RunLogError, TruthError):
+    with user_errors():
         if window_start_s is not None and not math.isfinite(window_start_s):
             raise UserError(f"--window-start-s must be a finite number, got {window_start_s}")
         require_positive(position_bound_m=position_bound_m, attitude_bound_rad=attitude_bound_rad)
@@ -87,7 +87,7 @@ def plot(
     truth = None
     truth_path = next((run / name for name in TRUTH_FILES if (run / name).is_file()), None)
     if truth_path is not None:
-        with user_errors(TruthError):
+        with user_errors():
             tracks = read_truth(truth_path, [d.boot_offset_s for d in log.drones], start_unix_s)
         position_t, euler_t = on_grid(tracks, log.t_s)
         perf_t, per_drone_t = metrics.judge(plan, log.t_s, position_t, euler_t, window_start_s, *truth_bounds)

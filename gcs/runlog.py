@@ -25,13 +25,14 @@ import numpy as np
 
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink
 
+from .errors import GcsError
 from .tracks import DroneSamples, TrackError, common_span_s, on_grid, track
 
 TLOG_TIMESTAMP = struct.Struct(">Q")
 _FRAME_START = re.compile(b"[\xfd\xfe]")  # MAVLink 2 and MAVLink 1 start bytes
 
 
-class RunLogError(ValueError):
+class RunLogError(GcsError, ValueError):
     """A log that cannot give every drone's telemetry, with the reason in one sentence."""
 
 

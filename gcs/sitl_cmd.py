@@ -80,7 +80,6 @@ def sitl_up(
     from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, run_sitl
     from triswarm.sitl.lockstep import LockstepOptions
-    from triswarm.sitl.server import LinkOpenError
     from triswarm.sitl.profiles import profile as sitl_profile
 
     def write(option: str, path: Path, data: dict) -> None:
@@ -94,7 +93,7 @@ def sitl_up(
                              wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust), firmware, run_dir,
                              truth, quiet, speedup=speedup, lockstep=lockstep, fc_profile=fc_profile, rate_hz=rate_hz,
                              clock_drift_ppm=clock_drift_ppm)
-    with user_errors(LinkOpenError):
+    with user_errors():
         if autopilot != "triswarm":
             raise UserError(f"--autopilot must be triswarm, ardupilot or px4, got {autopilot!r}")
         for option, value in (("--firmware", firmware), ("--run-dir", run_dir), ("--truth", truth)):
@@ -180,14 +179,13 @@ def _firmware_up(kind, n, first_id, manifest, home, physics_hz, spacing_m, stats
     import asyncio
 
     from triswarm.companion.state import write_json_atomically
-    from triswarm.protocol.airframe import ParameterError
-    from triswarm.sitl.ardupilot import ArduPilotOptions, FirmwareError, run_ardupilot
+    from triswarm.sitl.ardupilot import ArduPilotOptions, run_ardupilot
     from triswarm.sitl.firmware import find_firmware
     from triswarm.sitl.px4 import Px4Options, find_package, run_px4
 
     name = {"ardupilot": "ArduPilot", "px4": "PX4"}[kind]
 
-    with user_errors(ParameterError):
+    with user_errors():
         defaults = {"speedup": 1.0, "lockstep": False, "fc_profile": "triswarm", "rate_hz": None, "clock_drift_ppm": 0.0}
         for option, value in triswarm_only.items():
             if value != defaults[option]:
@@ -201,10 +199,7 @@ def _firmware_up(kind, n, first_id, manifest, home, physics_hz, spacing_m, stats
         finite_option("physics-hz", physics_hz, positive=True)
         finite_option("spacing-m", spacing_m, positive=True)
         finite_option("duration-s", duration_s, positive=True)
-        try:
-            binary = find_firmware(firmware) if kind == "ardupilot" else find_package(firmware)
-        except FirmwareError as exc:
-            raise UserError(str(exc)) from None
+        binary = find_firmware(firmware) if kind == "ardupilot" else find_package(firmware)
         options, run = (ArduPilotOptions, run_ardupilot) if kind == "ardupilot" else (Px4Options, run_px4)
         opts = options(n=n, firmware=binary, run_dir=run_dir or manifest.resolve().parent / "sitl-runs",
                        home=_home(home), first_id=first_id, spacing_m=spacing_m, physics_hz=physics_hz,
@@ -222,10 +217,7 @@ def _firmware_up(kind, n, first_id, manifest, home, physics_hz, spacing_m, stats
                               "<companion link>. Ctrl-C stops.", soft_wrap=True)
 
         say = (lambda text, warning=False: (warning or not quiet) and console.print(text, soft_wrap=True, markup=False))
-        try:
-            result = asyncio.run(run(opts, on_ready=ready, say=say))
-        except FirmwareError as exc:
-            raise UserError(str(exc)) from None
+        result = asyncio.run(run(opts, on_ready=ready, say=say))
         if stats is not None:
             try:
                 write_json_atomically(stats, result)

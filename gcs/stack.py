@@ -14,6 +14,8 @@ from pathlib import Path
 
 from triswarm.sitl.processes import signal_group, spawn
 
+from .errors import GcsError
+
 
 def _below_ephemeral() -> tuple[int, int]:
     """Ports to pick listening ports from: below the kernel's ephemeral range, which it hands to
@@ -25,7 +27,7 @@ def _below_ephemeral() -> tuple[int, int]:
     return max(1024, low - 20000), low
 
 
-class StackError(RuntimeError):
+class StackError(GcsError, RuntimeError):
     """The stack could not start (a process that died at start, no free ports): one sentence."""
 
 

@@ -34,10 +34,12 @@ from triswarm.protocol.frames import geodetic_from_mavlink, origin_offset_e_m
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, attitude_to_paper, local_ned_to_paper
 from triswarm.protocol.metrics import wrap_angle
 
+from .errors import GcsError
+
 STREAMS = ("ATTITUDE", "LOCAL_POSITION_NED")
 
 
-class TrackError(ValueError):
+class TrackError(GcsError, ValueError):
     """A track that cannot be made, with the reason in one sentence."""
 
 

@@ -15,12 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import GcsError
 from .tracks import Track
 
 COLUMNS = ("sysid", "boot_s", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")
 
 
-class TruthError(ValueError):
+class TruthError(GcsError, ValueError):
     """A truth log that cannot be read (one sentence naming it)."""
 
 

@@ -27,13 +27,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ProtocolError
+
 ESTIMATE_VERSION = 1
 _HEADER = struct.Struct("<BBHIIdd")
 _FORMAT = struct.Struct(_HEADER.format + "12d")
 ESTIMATE_SIZE = _FORMAT.size
 
 
-class CodecError(ValueError):
+class CodecError(ProtocolError):
     """A payload that is not a valid estimate (the reason names which check failed)."""
 
 

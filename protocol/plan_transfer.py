@@ -13,6 +13,7 @@ import zlib
 from dataclasses import dataclass
 
 from .codec import plan_id
+from .errors import ProtocolError
 
 VERSION = 1
 CMD_PLAN_HEADER = 31900
@@ -29,7 +30,7 @@ MISSION_NO_SPACE = 4
 MISSION_INVALID = 5
 
 
-class PlanTransferError(ValueError):
+class PlanTransferError(ProtocolError):
     """Items that do not make a plan, with the MISSION_ACK code to answer."""
 
     def __init__(self, reason: str, ack_code: int = MISSION_INVALID) -> None:

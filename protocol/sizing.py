@@ -23,11 +23,13 @@ import math
 
 import numpy as np
 
+from .errors import ProtocolError
+
 NEIGHBOUR_SPACING = 1.5
 """Neighbours on a resized polygon are this many minimum separations apart (2.76 m for Table 1)."""
 
 
-class SizingError(ValueError):
+class SizingError(ProtocolError):
     """A plan that cannot be resized (one sentence, without the source)."""
 
 

@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import SitlError
 from .processes import signal_group, spawn
 
 DEPLOY_DIR = Path(__file__).resolve().parents[1] / "deploy" / "ardupilot"
@@ -57,7 +58,7 @@ SITL_PARAMS = (
 """What a simulated vehicle needs beyond the shipped parameters (name, value, why)."""
 
 
-class FirmwareError(RuntimeError):
+class FirmwareError(SitlError, RuntimeError):
     """A firmware would not start (missing, not executable, its ports, its files): one sentence."""
 
 

@@ -25,6 +25,7 @@ from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, mavlink, new_codec, reset_parser
 from triswarm.protocol.stall import Stalls
 
+from .errors import LinkOpenError
 from .fc import LINKS
 from .lockstep import ATTITUDE_IDS, HIGH_RATE_IDS, Lockstep, LockstepOptions
 from .profiles import JITTER_TABLE, product_step
@@ -71,10 +72,6 @@ class Link:
         host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
         return {"pymavlink": f"udpout:{host}:{self.port}", "mavsdk": f"udpout://{host}:{self.port}",
                 "host": host, "port": self.port}
-
-
-class LinkOpenError(OSError):
-    """A vehicle's UDP link cannot be opened (the port taken, the address not this host's): one sentence."""
 
 
 class SitlServer:

@@ -30,11 +30,12 @@ from triswarm.protocol.frames import origin_offset_e_m
 from triswarm.protocol.mavlink import mavlink
 
 from ..actuators import ActuatorControlTarget
+from ..errors import CompanionError
 
 Say = Callable[[str], None]
 
 
-class AutopilotError(Exception):
+class AutopilotError(CompanionError):
     """The flight controller cannot be flown as it is (its script missing, an output path it has
     not): one sentence for the operator."""
 
