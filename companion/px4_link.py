@@ -328,11 +328,17 @@ class Px4ZenohLink:
             if all(c != c for c in controls[:6]):  # (an answer that commands nothing)
                 continue
             self._offboard_signal()
-            # (servos first: PX4 sends its outputs on when the motors come)
-            self._put("actuator_servos", px4.encode("ActuatorServos", control=controls[3:6] + [NAN_CONTROLS] * 5))
-            self._put("actuator_motors", px4.encode("ActuatorMotors", control=controls[0:3] + [NAN_CONTROLS] * 9))
+            # (servos first: PX4 sends its outputs on when the motors come). timestamp_sample: the
+            # odometry sample the command answers, on PX4's clock, as PX4's own controllers stamp
+            # theirs: its log then holds each command's age (tests/bench/bench_px4.py).
+            sample_us = msg.time_usec
+            self._put("actuator_servos", px4.encode("ActuatorServos", timestamp_sample=sample_us,
+                                                    control=controls[3:6] + [NAN_CONTROLS] * 5))
+            self._put("actuator_motors", px4.encode("ActuatorMotors", timestamp_sample=sample_us,
+                                                    control=controls[0:3] + [NAN_CONTROLS] * 9))
             collective = sum(min(max(c, 0.0), 1.0) for c in controls[0:3]) / 3.0
-            self._put("vehicle_thrust_setpoint", px4.encode("VehicleThrustSetpoint", xyz=[0.0, 0.0, -collective]))
+            self._put("vehicle_thrust_setpoint", px4.encode("VehicleThrustSetpoint", timestamp_sample=sample_us,
+                                                            xyz=[0.0, 0.0, -collective]))
             self.counters["tx_commands"] += 1
 
     def _put(self, topic: str, payload: bytes) -> None:

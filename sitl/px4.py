@@ -277,7 +277,7 @@ async def run_px4(opts: Px4Options, on_ready: Callable[[dict], None] | None = No
             truth.close()
     wall = time.monotonic() - wall0
     return {"autopilot": "px4", "sim_time_s": physics.t_s, "wall_time_s": wall, "sensor_steps": physics.sensor_steps,
-            "real_time_factor": physics.t_s / wall if wall > 0 else None, **physics.counters,
+            "real_time_factor": physics.t_s / wall if wall > 0 else None, **physics.counters, **physics.output_ages(),
             "vehicles": [{"sysid": fw.sysid, "instance": fw.instance} for fw in firmwares]}
 
 

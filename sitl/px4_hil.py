@@ -28,6 +28,7 @@ What the firmware reads, made from the plant's true state with stated noise (``S
 from __future__ import annotations
 
 import asyncio
+import collections
 import datetime
 import math
 import socket
@@ -47,6 +48,8 @@ SENSOR_HZ = 250.0
 """HIL_SENSOR rate: PX4's simulated IMU rate (IMU_INTEG_RATE 250 in its SITL start-up)."""
 GPS_HZ = 10.0
 FIRMWARE_SILENT_S = 3.0
+OUTPUT_AGES_KEPT = 100_000
+"""The newest outputs' ages kept for the run's statistics (over two minutes of six drones at PX4's 125 Hz)."""
 SIM_SYSID, SIM_COMPID = 0, 51
 """What the simulator's frames say they are from (PX4's simulator_mavlink does not check)."""
 FIELDS_IMU_MAG_BARO = 0x1FFF
@@ -104,11 +107,21 @@ class HilPhysics:
         self.on_sample = on_sample
         """Called with the plant's sensor rows after every sensor period (the truth log)."""
         self.counters = {"bad_frames": 0, "left": 0, "joined": 0, "send_errors": 0}
+        self.output_age_s: collections.deque[float] = collections.deque(maxlen=OUTPUT_AGES_KEPT)
+        """How old each HIL_ACTUATOR_CONTROLS was when it came [s, simulated]: the plant's time then
+        (from which it applies) minus PX4's stamp (when PX4 made the output)."""
         self._loop: asyncio.AbstractEventLoop | None = None
 
     @property
     def t_s(self) -> float:
         return self.plant.time_s
+
+    def output_ages(self) -> dict[str, float | None]:
+        """The outputs' ages when they came (``output_age_s``): median and 99th percentile [ms]."""
+        if not self.output_age_s:
+            return {"output_age_p50_ms": None, "output_age_p99_ms": None}
+        p50, p99 = np.percentile(np.array(self.output_age_s), [50, 99]) * 1e3
+        return {"output_age_p50_ms": round(float(p50), 3), "output_age_p99_ms": round(float(p99), 3)}
 
     def listen(self, loop: asyncio.AbstractEventLoop, ports: list[int]) -> None:
         """Listen on ``ports`` (one per vehicle, bound here: OSError if one is taken)."""
@@ -174,6 +187,7 @@ class HilPhysics:
             if m.get_type() != "HIL_ACTUATOR_CONTROLS":
                 continue
             self.controls[i] = m.controls
+            self.output_age_s.append(self.plant.time_s - (m.time_usec - 1) / 1e6)
             self.heard_at[i] = time.monotonic()
             if i not in self.members:
                 self.members.add(i)

@@ -78,3 +78,22 @@ def test_a_mode_change_is_answered_once_a_status_shows_it(link):
                                             arming_state=px4.ARMING_STATE_ARMED))
     assert [m.get_type() for m in link.heard] == ["HEARTBEAT", "HEARTBEAT", "COMMAND_ACK"]
     assert link.heard[1].custom_mode == px4.custom_mode(px4.NAV_STATE_OFFBOARD)
+
+
+def test_a_command_carries_the_sample_it_answers(link):
+    """The face's actuator command (SET_ACTUATOR_CONTROL_TARGET) becomes actuator_servos,
+    actuator_motors and vehicle_thrust_setpoint, each stamped with the odometry sample it answers
+    (timestamp_sample, PX4's clock), so PX4's log holds every command's age."""
+    put: list[tuple[str, object]] = []
+    link._put = lambda topic, payload: put.append((topic, px4.decode(px4.TOPICS_IN[topic], payload)))
+    controls = [0.5, 0.6, 0.7, 0.1, -0.2, 0.3, NAN, NAN]
+    frame = mavlink.MAVLink_set_actuator_control_target_message(7_250_000, 0, 1, 1, controls).pack(link._parser)
+    link.write(frame)
+    sent = dict(put)
+    assert [t for t, _ in put] == ["offboard_control_mode", "actuator_servos", "actuator_motors",
+                                   "vehicle_thrust_setpoint"]
+    assert all(sent[t].timestamp_sample == 7_250_000 for t in ("actuator_servos", "actuator_motors",
+                                                               "vehicle_thrust_setpoint"))
+    assert list(sent["actuator_motors"].control[:3]) == pytest.approx([0.5, 0.6, 0.7])
+    assert list(sent["actuator_servos"].control[:3]) == pytest.approx([0.1, -0.2, 0.3])
+    assert sent["vehicle_thrust_setpoint"].xyz[2] == pytest.approx(-0.6)

@@ -6,7 +6,10 @@ process flying all six, --autostart). Over [25, 50] s of the plan: the worst pos
 errors in PX4's own telemetry (EKF2, over MAVLink) and in the plant's truth; over 20 s of that
 window, the CPU of each PX4 instance, of the plant and router (the sitl process) and of the
 companions (share of one core), and the real-time factor of the firmwares' clock (simulated seconds
-per wall second).
+per wall second). The latency of the companions' commands, on the firmwares' clock (the simulation's),
+from PX4's logs and the plant: the odometry sample a command answers (its timestamp_sample) to PX4
+taking the command (actuator_motors), then to PX4's output (actuator_outputs), then to the plant
+applying it (HIL_ACTUATOR_CONTROLS; the servos' own delay comes on top).
 
     python tests/bench/bench_px4.py
 """
@@ -20,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
@@ -29,6 +34,7 @@ from tests.firmware_helpers import SHARED_PX4  # noqa: E402
 from tests.stack_helpers import judge, judge_truth  # noqa: E402
 from triswarm.gcs.recorder import Recorder  # noqa: E402
 from triswarm.gcs.stack import Stack  # noqa: E402
+from triswarm.protocol import px4_msgs as px4  # noqa: E402
 from triswarm.protocol.plan import plan_from_dict, spec_from_toml  # noqa: E402
 
 WINDOW = (25.0, 50.0)
@@ -60,12 +66,40 @@ def case_study() -> dict:
                 time.sleep(0.2)
             _, telemetry = judge(plan, rec, start, *WINDOW, position_bound_m=0.25, attitude_bound_rad=0.05)
         _, truth_worst = judge_truth(plan, truth, rec, start, *WINDOW, position_bound_m=0.10, attitude_bound_rad=0.02)
+        sitl = json.loads((tmp / "run" / "stats" / "sitl.json").read_text())
+        latency = command_latency(sorted((tmp / "run" / "firmware").glob("vehicle-*/log/*/*.ulg")))
+    latency["plant_takes_output_ms"] = [sitl["output_age_p50_ms"], sitl["output_age_p99_ms"]]
     wall = wall1 - wall0
     worst = lambda report: [max(p for p, _ in report.values()), max(a for _, a in report.values())]  # noqa: E731
     return {"window_s": list(WINDOW), "telemetry_worst_m_rad": worst(telemetry), "truth_worst_m_rad": worst(truth_worst),
             "telemetry": telemetry, "truth": truth_worst,
             "cpu_share": {k: round((cpu1[k] - cpu0[k]) / wall, 3) for k in procs},
-            "real_time_factor": round((sim1 - sim0) / wall, 3)}
+            "real_time_factor": round((sim1 - sim0) / wall, 3),
+            "latency_p50_p99_ms": latency}
+
+
+def command_latency(logs: list[Path]) -> dict[str, list[float]]:
+    """From PX4's logs (their actuator_motors and actuator_outputs, as the logger sampled them; PX4's
+    clock): the odometry sample a command answers to PX4 taking it, and PX4 taking it to its output,
+    median and 99th percentile [ms] over every vehicle's flight."""
+    from pyulog import ULog
+
+    taken, output = [], []
+    for path in logs:
+        log = ULog(str(path), ["actuator_motors", "actuator_outputs", "vehicle_status"])
+        motors, outputs, status = (log.get_dataset(n).data for n in ("actuator_motors", "actuator_outputs",
+                                                                      "vehicle_status"))
+        # the companion's commands: those PX4 took in offboard (in its other modes they are its own)
+        mode_then = np.searchsorted(status["timestamp"], motors["timestamp"], side="right") - 1
+        flown = (mode_then >= 0) & (status["nav_state"][np.maximum(mode_then, 0)] == px4.NAV_STATE_OFFBOARD)
+        t_motor, t_sample = motors["timestamp"][flown], motors["timestamp_sample"][flown]
+        taken.append((t_motor - t_sample) / 1e3)
+        t_out = outputs["timestamp"]
+        first = np.searchsorted(t_out, t_motor)
+        ok = first < t_out.size
+        output.append((t_out[first[ok]] - t_motor[ok]) / 1e3)
+    pct = lambda a: [round(float(v), 3) for v in np.percentile(np.concatenate(a), [50, 99])]  # noqa: E731
+    return {"sample_to_px4_ms": pct(taken), "px4_to_output_ms": pct(output)}
 
 
 def main() -> None:
