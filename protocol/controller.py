@@ -46,6 +46,11 @@ if TYPE_CHECKING:
     from .wind import Wind
 
 
+WIND_ESTIMATE_FLOOR_M_S = 1.0
+"""Airspeed [m/s] below which the wind estimate's step is taken as at this speed: the drag's
+sensitivity to the wind, 2 k |r| / m, vanishes with the airspeed |r|."""
+
+
 def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
     """x(T) = Phi x(0) + Gamma u for x' = A x + B u with u held."""
     n, m = B.shape
@@ -103,17 +108,21 @@ class FormationController:
     def for_plan(cls, plan: "Plan", n_agents: int, rate_hz: float, wind: "Wind | None",
                  delay_s: float | None = None, measured_rates: bool = False) -> "FormationController":
         """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
-        thrust adaptation and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
+        thrust adaptation, wind estimate and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
         way a simulation and the companions make theirs."""
         return cls(plan.design, n_agents, rate_hz, delay_s,
                    thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
-                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates)
+                   air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates,
+                   wind_estimate_rate_1_s=plan.controller.wind_estimate_rate_1_s)
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
-                 air_density_kg_m3: float = 0.0, measured_rates: bool = False) -> None:
+                 air_density_kg_m3: float = 0.0, measured_rates: bool = False,
+                 wind_estimate_rate_1_s: float = 0.0) -> None:
         """air_density_kg_m3: the air the drones fly in, as the controller assumes it [kg/m^3], for
-        the drag the RFL cancels; 0 is no air (the paper's law, to the bit)."""
+        the drag the RFL cancels; 0 is no air (the paper's law, to the bit). wind_estimate_rate_1_s:
+        the rate [1/s] at which the wind estimate takes up the translational disturbance that its
+        drag explains (``kernels.update_wind_estimate``; 0: still air assumed, no wind estimate)."""
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"controller rate must be a positive number of hertz, got {rate_hz!r}")
         self.design = design
@@ -136,6 +145,9 @@ class FormationController:
         outputs); off: the observer alone estimates them (docs/control-design.md says why it is
         the default)."""
         self.adaptation_rate = float(thrust_adaptation_rate_1_s)
+        if not (np.isfinite(wind_estimate_rate_1_s) and wind_estimate_rate_1_s >= 0):
+            raise ValueError(f"wind estimate rate must be a non-negative number of 1/s, got {wind_estimate_rate_1_s!r}")
+        self.wind_estimate_rate_1_s = float(wind_estimate_rate_1_s)
         self.kappa_limits = thrust_scale_limits
 
         A, B, C, F = design.observer_model()
@@ -156,6 +168,10 @@ class FormationController:
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
         self._adapt_k = self.adaptation_rate * self.dt_s if self._Einv is not None else 0.0
+        self._wind_gain = self.wind_estimate_rate_1_s * self.dt_s if self._Einv is not None else 0.0
+        self.wind_estimate_e_m_s = np.zeros((self.n, 3))
+        """The wind each agent's controller has estimated, earth frame [m/s] (N, 3): the RFL cancels
+        the drag of the drone's velocity relative to it."""
         self.z: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self.thrust_scale = np.ones(self.n)
@@ -192,6 +208,7 @@ class FormationController:
         self._motor_pipe[:, rows] = omega
         self._v_applied[rows] = 0.0
         self.thrust_scale[rows] = 1.0
+        self.wind_estimate_e_m_s[rows] = 0.0
 
     @property
     def disturbance_estimate(self) -> np.ndarray:
@@ -250,8 +267,9 @@ class FormationController:
         r = self.rfl
         kernels.actuate(rows, self._z_pred, self.z, v, self._Einv_or_zero, self._Einv is not None, self._half_Phi,
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, self.drag_1_m,
-                        MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1], self._v_pipe,
-                        self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
+                        MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1],
+                        self.wind_estimate_e_m_s, self._wind_gain, WIND_ESTIMATE_FLOOR_M_S, r.airframe.servo_limit_rad,
+                        self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
         return Actuation(omega_now, alpha)
 
     def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> None:

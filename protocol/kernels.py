@@ -26,17 +26,37 @@ def _matvec_add(M, x, out, scale=1.0):
 
 
 @njit(inline="always")
-def drag_share(xr, drag):
+def drag_share(xr, drag, wind):
     """What the thrust must add to the specific force, earth frame [m/s^2], to cancel the body's drag
-    in still air, -drag |lambda_dot| lambda_dot, at x_r (lambda_dot = xr[0:3]); drag = k / m [1/m]."""
-    s = drag * math.sqrt(xr[0] * xr[0] + xr[1] * xr[1] + xr[2] * xr[2])
-    return s * xr[0], s * xr[1], s * xr[2]
+    -drag |r| r, r = lambda_dot - wind its velocity through the air, at x_r (lambda_dot = xr[0:3]) in
+    the wind ``wind`` (3, earth frame [m/s]; zeros: still air); drag = k / m [1/m]."""
+    rx, ry, rz = xr[0] - wind[0], xr[1] - wind[1], xr[2] - wind[2]
+    s = drag * math.sqrt(rx * rx + ry * ry + rz * rz)
+    return s * rx, s * ry, s * rz
 
 
 @njit()
-def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
+def update_wind_estimate(xr, d, drag, gain, floor, wind):
+    """One step of the wind estimate ``wind`` (3, earth frame [m/s], updated in place) from the
+    translational disturbance d (3, [m/s^2]) that is left once the drag in that wind is cancelled:
+    d ~ drag J(r) (w - wind), J(r) = |r| I + r r^T / |r| the Jacobian of |r| r, r = lambda_dot - wind.
+    The step is gain J^-1 d / drag (gain = rate [1/s] times the period [s]), with |r| taken at least
+    ``floor`` [m/s] (slow air says little about the wind), and horizontal: the mean wind is, and a
+    vertical one would be told apart from a thrust error only by the vertical speed."""
+    rx, ry, rz = xr[0] - wind[0], xr[1] - wind[1], xr[2] - wind[2]
+    speed = max(math.sqrt(rx * rx + ry * ry + rz * rz), floor)
+    # J^-1 = (I - r r^T / (2 |r|^2)) / |r|
+    rd = (rx * d[0] + ry * d[1] + rz * d[2]) / (2.0 * speed * speed)
+    k = gain / (drag * speed)
+    wind[0] += k * (d[0] - rx * rd)
+    wind[1] += k * (d[1] - ry * rd)
+
+
+@njit()
+def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, wind, max_pitch, u, yddot):
     """(49) in x_r coordinates for one row (see RFL.control_xr): writes u (6) and y_ddot (6). With
-    drag = k / m > 0 [1/m] the law also cancels the drag of still air (``rfl`` module docstring)."""
+    drag = k / m > 0 [1/m] the law also cancels the body's drag in the wind ``wind`` (3, earth frame
+    [m/s]; zeros: still air) (``rfl`` module docstring)."""
     for k in range(6):
         acc = 0.0
         for c in range(12):
@@ -72,7 +92,7 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
     # body specific force = R^T (lambda_ddot + g e_z)
     fx, fy, fz = yddot[3], yddot[4], yddot[5] + g
     if drag > 0.0:  # (no air: not a single operation more, the paper's law to the bit)
-        dx, dy, dz = drag_share(xr, drag)
+        dx, dy, dz = drag_share(xr, drag, wind)
         fx, fy, fz = fx + dx, fy + dy, fz + dz
     w[0] = ct * cp * fx + ct * sp * fy - st * fz
     w[1] = (sf * st * cp - cf * sp) * fx + (sf * st * sp + cf * cp) * fy + sf * ct * fz
@@ -82,9 +102,9 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
 
 
 @njit()
-def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yddot):
+def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, drag, wind, max_pitch, u, yddot):
     for i in range(xr.shape[0]):
-        rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, drag, max_pitch, u[i], yddot[i])
+        rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, drag, wind[i], max_pitch, u[i], yddot[i])
 
 
 @njit()
@@ -184,14 +204,20 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 
 @njit()
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, drag, max_pitch,
-            kappa, adapt_k, k_lo, k_hi, v_pipe, motor_pipe, v_applied, v_out, omega, alpha, omega_now):
+            kappa, adapt_k, k_lo, k_hi, wind, wind_gain, wind_floor, servo_limit, v_pipe, motor_pipe, v_applied,
+            v_out, omega, alpha, omega_now):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
-    predict half a period on, RFL (with the drag of still air, drag = k / m [1/m], 0 in no air),
-    adapt and apply the thrust scale kappa, actuator inverse, and commit the result to the pipes
-    (``push``). Writes v_out (the v committed), omega (the rotor speeds computed), alpha and
-    omega_now (the commands to send now), indexed like v_in; updates kappa in place. z is the
-    observer state: with adaptation (adapt_k > 0, which needs a disturbance estimate) columns 12-14
-    are the translational disturbance."""
+    predict half a period on, RFL (with the drag in the estimated wind, drag = k / m [1/m], 0 in no
+    air), adapt and apply the thrust scale kappa, actuator inverse within the servo range, and
+    commit the result to the pipes (``push``). Writes v_out (the v committed), omega (the rotor
+    speeds computed), alpha and omega_now (the commands to send now), indexed like v_in; updates
+    kappa and the wind estimate ``wind`` (N, 3) in place (``update_wind_estimate``, with wind_gain > 0
+    and a disturbance estimate; not while a rotor is held at the servo range's edge, where the
+    disturbance is the allocation's shortfall, not the wind: no wind-up). z is the observer state: with a disturbance estimate columns 12-14
+    are the translational disturbance.
+
+    A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit) gets the
+    nearest force the range allows: its projection on the range's edge, none if it points away."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)
     u = np.empty(6)
@@ -204,20 +230,29 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
         zm[:] = 0.0
         _matvec_add(half_Phi, z_pred[i], zm)
         _matvec_add(half_G, v_out[k], zm)
-        rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, drag, max_pitch, u, yd)
+        rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, drag, wind[i], max_pitch, u, yd)
         if adapt_k > 0.0:
             a0, a1, a2 = yd[3], yd[4], yd[5] + g  # the commanded specific thrust
             if drag > 0.0:
-                dx, dy, dz = drag_share(zm, drag)
+                dx, dy, dz = drag_share(zm, drag, wind[i])
                 a0, a1, a2 = a0 + dx, a1 + dy, a2 + dz
             norm2 = a0 * a0 + a1 * a1 + a2 * a2
             if norm2 > 1.0:  # below ~1 m/s^2 of commanded thrust the ratio says little
                 step = adapt_k * (z[i, 12] * a0 + z[i, 13] * a1 + z[i, 14] * a2) / norm2
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
+        saturated = False
         for j in range(3):
             s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
+            a = math.atan2(s, c)
+            if abs(a) > servo_limit:
+                saturated = True
+                a = math.copysign(servo_limit, a)
+                along = s * math.sin(a) + c * math.cos(a)
+                s, c = max(along, 0.0) * math.sin(a), max(along, 0.0) * math.cos(a)
             omega[k, j] = math.sqrt(math.hypot(s, c))
-            alpha[k, j] = math.atan2(s, c)
+            alpha[k, j] = a
+        if wind_gain > 0.0 and drag > 0.0 and use_dist and not saturated:
+            update_wind_estimate(zm, z[i, 12:15], drag, wind_gain, wind_floor, wind[i])
     push(rows, v_out, omega, False, v_pipe, motor_pipe, v_applied, omega_now)
 
 

@@ -17,7 +17,8 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       name, pinned = [agents], edges = [[from, to], ...] (agents from 1, 0 = leader)
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
-    [controller]      rate_hz, thrust_adaptation_rate_1_s, air_density_kg_m3 (the drag the controllers cancel)
+    [controller]      rate_hz, thrust_adaptation_rate_1_s, air_density_kg_m3 (the drag the controllers cancel),
+                      wind_estimate_rate_1_s
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
 
@@ -108,6 +109,9 @@ class ControllerSettings:
     1/2 rho C_d A |v| v with it (C_d and A the airframe's). None: the density of the air the plan is
     flown in (ISA sea level, 1.225, unless [wind] says otherwise), and 0 (no drag term: the paper's
     law) when it is flown in no air (``Plan.controller_air_density_kg_m3``)."""
+    wind_estimate_rate_1_s: float = 1.0
+    """Rate [1/s] at which the controllers' estimate of the horizontal wind takes up the
+    disturbance its drag explains (0: the drag is cancelled as in still air); only in air."""
 
 
 @dataclass(frozen=True)
@@ -543,7 +547,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     cf = _Fields(source, "controller", top.get("controller"))
     ctrl = ControllerSettings(cf.number("rate_hz", 200.0, positive=True),
                               cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True),
-                              cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None)
+                              cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None,
+                              cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True))
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),

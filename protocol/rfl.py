@@ -74,12 +74,15 @@ def decoupling_matrix(x: np.ndarray, af: Airframe) -> np.ndarray:
     return np.concatenate([top, bottom], axis=-2)
 
 
-def drift_output_acceleration(x: np.ndarray, af: Airframe, air_density_kg_m3: float = 0.0) -> np.ndarray:
+def drift_output_acceleration(x: np.ndarray, af: Airframe, air_density_kg_m3: float = 0.0,
+                              wind_e_m_s: np.ndarray | None = None) -> np.ndarray:
     """b(x) = L_f^2 H(x): y_ddot with zero input, shape (..., 6).
 
     eta_ddot = Psi_dot omega + Psi I^-1 (-omega x I omega); lambda_ddot = [0, 0, -g] because
-    d/dt (R v_b) = R (v_dot + omega x v) and the Coriolis terms cancel. In still air of density
-    air_density_kg_m3 [kg/m^3] lambda_ddot also has the drag -(k/m) |R v_b| R v_b (module docstring).
+    d/dt (R v_b) = R (v_dot + omega x v) and the Coriolis terms cancel. In air of density
+    air_density_kg_m3 [kg/m^3] lambda_ddot also has the drag -(k/m) |r| r, r = R v_b - w the velocity
+    through the air in the wind w = wind_e_m_s (earth frame [m/s], (..., 3); None: still air)
+    (module docstring).
     """
     eta, w = x[..., EULER], x[..., BODY_RATE]
     I = inertia_matrix(af)
@@ -92,6 +95,8 @@ def drift_output_acceleration(x: np.ndarray, af: Airframe, air_density_kg_m3: fl
     lam_ddot[..., 2] = -af.gravity_m_s2
     if air_density_kg_m3 > 0.0:
         vel_e = (rotation_body_to_earth(eta) @ x[..., BODY_VEL, None])[..., 0]
+        if wind_e_m_s is not None:
+            vel_e = vel_e - wind_e_m_s
         speed = np.sqrt((vel_e * vel_e).sum(axis=-1, keepdims=True))
         lam_ddot = lam_ddot - af.drag_factor_kg_m(air_density_kg_m3) / af.mass_kg * speed * vel_e
     return np.concatenate([eta_ddot, lam_ddot], axis=-1)
@@ -187,28 +192,33 @@ class RFL:
         """(51): beta(x) = M(x)^-1 M(0), shape (..., 6, 6)."""
         return np.linalg.solve(decoupling_matrix(x, self.airframe), np.broadcast_to(self.M0, x.shape[:-1] + (6, 6)))
 
-    def control(self, x: np.ndarray, v: np.ndarray, air_density_kg_m3: float = 0.0) -> np.ndarray:
-        """(49): u = alpha(x) + beta(x) v = M(x)^-1 (-b(x) + L phi_r(x) + M(0) v), with the drag of
-        still air of density air_density_kg_m3 [kg/m^3] in b(x) (0: the paper's law, no air)."""
-        b = drift_output_acceleration(x, self.airframe, air_density_kg_m3)
+    def control(self, x: np.ndarray, v: np.ndarray, air_density_kg_m3: float = 0.0,
+                wind_e_m_s: np.ndarray | None = None) -> np.ndarray:
+        """(49): u = alpha(x) + beta(x) v = M(x)^-1 (-b(x) + L phi_r(x) + M(0) v), with the drag in
+        air of density air_density_kg_m3 [kg/m^3] (0: the paper's law, no air) and the wind
+        wind_e_m_s (earth frame [m/s]; None: still air) in b(x)."""
+        b = drift_output_acceleration(x, self.airframe, air_density_kg_m3, wind_e_m_s)
         target = -b + self.phi_r(x) @ self.L.T + v @ self.M0.T
         return np.linalg.solve(decoupling_matrix(x, self.airframe), target[..., None])[..., 0]
 
     def control_xr(self, x_r: np.ndarray, v: np.ndarray, max_pitch_rad: float = MAX_PITCH_RAD,
-                   air_density_kg_m3: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                   air_density_kg_m3: float = 0.0, wind_e_m_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(49) written in x_r coordinates, without a linear solve: returns u (..., 6) and the
         commanded output acceleration y_ddot = L x_r + M(0) v (..., 6) (its rows 4-6 plus g e_z,
-        plus (k/m) |lambda_dot| lambda_dot in air, are the commanded specific thrust in the earth
-        frame).
+        plus (k/m) |r| r in air, r = lambda_dot - wind_e_m_s, are the commanded specific thrust in
+        the earth frame).
 
         M(x) = blockdiag(Psi, R_b2e) G with G constant, so M^-1 t = G^-1 [W t_eta; R^T t_lambda],
-        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v, air_density_kg_m3)``
+        W = Psi^-1; omega = W eta_dot. Equal to ``control(phi_r^-1(x_r), v, air_density_kg_m3, wind_e_m_s)``
         (tested). Compiled (``kernels.rfl_xr_row``): it runs on every tick of every drone."""
         xr2 = np.ascontiguousarray(np.asarray(x_r, dtype=float).reshape(-1, 12))
         v2 = np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float), x_r.shape[:-1] + (6,)).reshape(-1, 6))
+        wind2 = np.zeros((xr2.shape[0], 3)) if wind_e_m_s is None else np.ascontiguousarray(
+            np.broadcast_to(np.asarray(wind_e_m_s, dtype=float), x_r.shape[:-1] + (3,)).reshape(-1, 3))
         u = np.empty((xr2.shape[0], 6))
         yddot = np.empty((xr2.shape[0], 6))
         kernels.rfl_xr(xr2, v2, self.L, self.M0, self.inertia, self.inertia_inv, self.G_inv,
-                       self.airframe.gravity_m_s2, self.drag_per_mass_1_m(air_density_kg_m3), max_pitch_rad, u, yddot)
+                       self.airframe.gravity_m_s2, self.drag_per_mass_1_m(air_density_kg_m3), wind2, max_pitch_rad, u,
+                       yddot)
         shape = x_r.shape[:-1] + (6,)
         return u.reshape(shape), yddot.reshape(shape)

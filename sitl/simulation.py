@@ -92,6 +92,8 @@ class SimResult:
     diverged_drone: int | None = None
     """The first drone (numbered from 1) whose state left the valid range, when one did."""
     thrust_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    wind_estimate_e_m_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """The wind each drone's controller had estimated at the end, earth frame [m/s] (N, 3)."""
 
 
 def default_start_positions(n: int, seed: int = 0, radius_m: float = 3.0) -> np.ndarray:
@@ -196,7 +198,8 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
         plant.advance(sub)
     wall = time.perf_counter() - wall0
     return SimResult(plan, config, af_plant, t_log[:row], pos_log[:row], eta_log[:row], omega_log[:row],
-                     alpha_log[:row], start, wall, diverged, diverged_drone, ctrl.thrust_scale.copy())
+                     alpha_log[:row], start, wall, diverged, diverged_drone, ctrl.thrust_scale.copy(),
+                     ctrl.wind_estimate_e_m_s.copy())
 
 
 def delay_margin(plan: Plan, config: SimConfig, assess_run: Callable[[SimResult], bool],

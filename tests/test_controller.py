@@ -62,10 +62,11 @@ class NumpyController:
     """One tick of the controller in plain numpy, from the design and protocol/controller.py's
     docstring, not from its kernels: the observer (73) with the disturbance state, discretised
     (ZOH on v, FOH on y), the prediction over the servo delay, the disturbance cancelled, half a
-    period on, (49) by linear solve (``RFL.control``), the thrust adaptation and the actuator
-    inverse of Remark 1."""
+    period on, (49) by linear solve (``RFL.control``) in the estimated wind, the thrust adaptation,
+    the wind estimate's step (kernels.update_wind_estimate's docstring) and the actuator inverse of
+    Remark 1 within the servo range."""
 
-    def __init__(self, design, n, rate_hz, adaptation_rate_1_s, air_density_kg_m3=0.0):
+    def __init__(self, design, n, rate_hz, adaptation_rate_1_s, air_density_kg_m3=0.0, wind_estimate_rate_1_s=0.0):
         A, B, C, F = design.observer_model()
         T = 1.0 / rate_hz
         self.Phi, self.Gv, self.Gy0, self.Gy1 = _zoh_foh(A - design.c * F @ C, B, design.c * F, T)
@@ -79,6 +80,7 @@ class NumpyController:
         self.air = air_density_kg_m3
         af = design.rfl.airframe
         self.k_m = 0.5 * air_density_kg_m3 * af.drag_coefficient * af.frontal_area_m2 / af.mass_kg
+        self.wind_gain = wind_estimate_rate_1_s * T
 
     def reset(self, x):
         self.z = np.hstack([self.rfl.phi_r(x), np.zeros((self.n, 6))])
@@ -86,6 +88,7 @@ class NumpyController:
         self.v_pipe = [np.zeros((self.n, 6))] * self.lead
         self.motor_pipe = [model.actuator_inverse(self.rfl.control(x, np.zeros((self.n, 6)), self.air))[0]] * self.lead
         self.v_applied = np.zeros((self.n, 6))
+        self.wind = np.zeros((self.n, 3))
 
     def observe(self, y):
         if not self.fresh:
@@ -97,23 +100,38 @@ class NumpyController:
     def actuate(self, v):
         v = v - self.z_pred[:, 12:18] @ self.E_inv.T
         zm = self.z_pred @ self.half_Phi.T + v @ self.half_G.T
-        u = self.rfl.control(self.rfl.phi_r_inverse(zm[:, :12]), v, self.air)
+        u = self.rfl.control(self.rfl.phi_r_inverse(zm[:, :12]), v, self.air, self.wind)
         thrust = zm[:, :12] @ self.rfl.L[3:6].T + v @ self.rfl.M0[3:6].T + [0.0, 0.0, self.rfl.airframe.gravity_m_s2]
-        thrust += self.k_m * np.linalg.norm(zm[:, 0:3], axis=1, keepdims=True) * zm[:, 0:3]  # (the drag's share)
+        air_v = zm[:, 0:3] - self.wind
+        thrust += self.k_m * np.linalg.norm(air_v, axis=1, keepdims=True) * air_v  # (the drag's share)
         n2 = (thrust**2).sum(axis=1)
         step = np.where(n2 > 1.0, self.adapt_k * (self.z[:, 12:15] * thrust).sum(axis=1) / n2, 0.0)
         self.kappa = np.clip(self.kappa * (1.0 + step), 0.3, 3.0)
         omega, alpha = model.actuator_inverse(u / self.kappa[:, None])
+        limit = self.rfl.airframe.servo_limit_rad
+        edge = np.sign(alpha) * limit
+        beyond = np.abs(alpha) > limit  # the force's projection on the servo range's edge, none if negative
+        omega = np.where(beyond, np.sqrt(np.maximum(omega**2 * np.cos(alpha - edge), 0.0)), omega)
+        alpha = np.where(beyond, edge, alpha)
+        if self.wind_gain and self.k_m:  # (not for a drone with a rotor at the servo range's edge)
+            speed = np.maximum(np.linalg.norm(air_v, axis=1), 1.0)[:, None]
+            d = self.z[:, 12:15]
+            J_inv_d = (d - air_v * (air_v * d).sum(axis=1, keepdims=True) / (2 * speed**2)) / speed
+            step = (self.wind_gain / self.k_m * J_inv_d)[:, 0:2]
+            self.wind[:, 0:2] += np.where(beyond.any(axis=1, keepdims=True), 0.0, step)
         self.v_applied, self.v_pipe = self.v_pipe[0], self.v_pipe[1:] + [v]
         omega_now, self.motor_pipe = self.motor_pipe[0], self.motor_pipe[1:] + [omega]
         return omega_now, alpha
 
 
-@pytest.mark.parametrize("air_density_kg_m3", [0.0, 1.225], ids=["no-air", "sea-level-air"])
-def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng, air_density_kg_m3):
+@pytest.mark.parametrize("air_density_kg_m3, wind_estimate_rate_1_s", [(0.0, 0.0), (1.225, 0.0), (1.225, 2.0)],
+                         ids=["no-air", "sea-level-air", "sea-level-air-wind-estimated"])
+def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng, air_density_kg_m3,
+                                                                                  wind_estimate_rate_1_s):
     """Six agents at once (compiled kernels) against the numpy reference above, over ticks with noisy
-    measurements and arbitrary protocol inputs; and agent 1 alone gives agent 1's commands. In no air
-    and in air (the drag of still air cancelled, drones moving at up to 14 m/s)."""
+    measurements and arbitrary protocol inputs (some drive rotors past the servo range); and agent 1
+    alone gives agent 1's commands. In no air and in air (the drag cancelled, drones moving at up to
+    14 m/s), with and without the wind estimate."""
     d = paper_plan.design
     n = 6
     x = np.zeros((n, 12))
@@ -121,13 +139,14 @@ def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent
     x[:, 6:9] = rng.uniform(-0.3, 0.3, (n, 3))
     if air_density_kg_m3:
         x[:, 0:3] = rng.uniform(-8, 8, (n, 3))
-    air = {"air_density_kg_m3": air_density_kg_m3}
+    air = {"air_density_kg_m3": air_density_kg_m3, "wind_estimate_rate_1_s": wind_estimate_rate_1_s}
     batch, single, ref = FormationController(d, n, **air), FormationController(d, 1, **air), \
         NumpyController(d, n, 200.0, 3.0, **air)
     for c in (batch, ref):
         c.reset(x)
     single.reset(x[:1])
     topo = paper_plan.schedule.topologies[1]
+    beyond_range = False
     for _ in range(40):
         y = x[:, 6:12] + rng.normal(0, 0.01, (n, 6))
         xi = batch.observe(y)
@@ -140,9 +159,14 @@ def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent
         assert np.allclose(act.omega_rad_s, omega, rtol=1e-9, atol=1e-6)
         assert np.allclose(act.alpha_rad, alpha, rtol=1e-9, atol=1e-9)
         assert np.allclose(batch.thrust_scale, ref.kappa, rtol=1e-12)
+        assert np.allclose(batch.wind_estimate_e_m_s, ref.wind, rtol=1e-9, atol=1e-12)
+        beyond_range |= np.abs(alpha).max() >= d.rfl.airframe.servo_limit_rad
         one = single.actuate(v[:1])
         assert np.allclose(one.omega_rad_s, act.omega_rad_s[:1], rtol=1e-12) and np.allclose(one.alpha_rad, act.alpha_rad[:1])
     assert np.abs(batch.thrust_scale - 1.0).max() > 1e-6  # (the adaptation did move)
+    assert beyond_range  # (the servo range was met)
+    if wind_estimate_rate_1_s:
+        assert np.abs(batch.wind_estimate_e_m_s).max() > 1e-3 and not batch.wind_estimate_e_m_s[:, 2].any()
 
 
 def test_missing_measurements_do_not_poison_the_estimate(paper_plan):
