@@ -18,8 +18,9 @@ what the face says and hears over that bridge, in the face's own terms, so that 
   in this mode and uses the thrust setpoint only to know the vehicle flies: its land detector,
   which without one takes a hover for a landing (and a failsafe then idles the motors). Asking for offboard mode first streams
   offboard_control_mode for PRESTREAM_S (PX4 enters offboard only with its signal present) and on
-  until the companion's commands flow (HANDOVER_S at most); after that the signal is the companion's
-  commands: when they stop, PX4's offboard-loss failsafe acts.
+  until the companion's commands flow (HANDOVER_S at most); after that the signal goes with the
+  companion's commands, at most SIGNAL_HZ (PX4 wants it at 2 Hz or more): when they stop, PX4's
+  offboard-loss failsafe acts.
 
 What the bridge cannot carry (parameters, message intervals, TIMESYNC, a ground station's frames) is
 dropped and counted (``not_carried_<type>``). The ground station keeps its own MAVLink link to PX4.
@@ -58,6 +59,9 @@ PRESTREAM_S = 0.3
 PRESTREAM_HZ = 20.0
 HANDOVER_S = 3.0
 """After asking for offboard, its signal goes on until the face commands, for at most this long [s]."""
+SIGNAL_HZ = 20.0
+"""offboard_control_mode goes with the commands at most this often [Hz, wall]: it only says that
+offboard control lives (PX4 wants it at 2 Hz or more), and every message costs the companion a put."""
 ORIGIN_EVERY_S = 1.0
 """EKF2's origin is handed to the face when it changes, and this often [s, wall] besides."""
 NAN_CONTROLS = float("nan")
@@ -108,6 +112,7 @@ class Px4ZenohLink:
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._subs: list = []
         self._prestream: asyncio.Task | None = None
+        self._signal_at = -math.inf
         self._origin: tuple | None = None
         self._origin_said = 0.0
         self._asked_mode: int | None = None
@@ -327,7 +332,9 @@ class Px4ZenohLink:
             controls = [float(c) for c in msg.controls]
             if all(c != c for c in controls[:6]):  # (an answer that commands nothing)
                 continue
-            self._offboard_signal()
+            if (now := time.monotonic()) - self._signal_at >= 1.0 / SIGNAL_HZ:
+                self._signal_at = now
+                self._offboard_signal()
             # (servos first: PX4 sends its outputs on when the motors come). timestamp_sample: the
             # odometry sample the command answers, on PX4's clock, as PX4's own controllers stamp
             # theirs: its log then holds each command's age (tests/bench/bench_px4.py).

@@ -83,7 +83,8 @@ def test_a_mode_change_is_answered_once_a_status_shows_it(link):
 def test_a_command_carries_the_sample_it_answers(link):
     """The face's actuator command (SET_ACTUATOR_CONTROL_TARGET) becomes actuator_servos,
     actuator_motors and vehicle_thrust_setpoint, each stamped with the odometry sample it answers
-    (timestamp_sample, PX4's clock), so PX4's log holds every command's age."""
+    (timestamp_sample, PX4's clock), so PX4's log holds every command's age; offboard_control_mode
+    goes with them at most SIGNAL_HZ."""
     put: list[tuple[str, object]] = []
     link._put = lambda topic, payload: put.append((topic, px4.decode(px4.TOPICS_IN[topic], payload)))
     controls = [0.5, 0.6, 0.7, 0.1, -0.2, 0.3, NAN, NAN]
@@ -97,3 +98,6 @@ def test_a_command_carries_the_sample_it_answers(link):
     assert list(sent["actuator_motors"].control[:3]) == pytest.approx([0.5, 0.6, 0.7])
     assert list(sent["actuator_servos"].control[:3]) == pytest.approx([0.1, -0.2, 0.3])
     assert sent["vehicle_thrust_setpoint"].xyz[2] == pytest.approx(-0.6)
+    put.clear()  # the next command, at once: the offboard signal went with the last one (SIGNAL_HZ at most)
+    link.write(frame)
+    assert [t for t, _ in put] == ["actuator_servos", "actuator_motors", "vehicle_thrust_setpoint"]
