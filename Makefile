@@ -72,6 +72,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
 	$(ONE_CORE) $(PY) tests/bench/bench_wind.py
 	$(ONE_CORE) $(PY) tests/bench/bench_rates.py
+	$(ONE_CORE) $(PY) tests/bench/bench_estimators.py
 	$(ONE_CORE) $(PY) tests/bench/bench_zenoh_loss.py
 	$(ONE_CORE) $(PY) tests/bench/bench_ardupilot.py
 	$(ONE_CORE) $(PY) tests/bench/bench_px4.py

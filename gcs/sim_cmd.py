@@ -44,6 +44,10 @@ def sim(
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
     max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
     noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
+    estimator: Annotated[Optional[str], typer.Option(
+        metavar="PROFILE", help="What the controllers measure, as an autopilot's estimator with this positioning "
+                                "reports it (lag, wandering bias, noise): truth, mocap, rtk or gps "
+                                "(docs/wind.md#estimates-as-autopilots-give-them).")] = None,
     mismatch: Annotated[float, typer.Option(help="Plant mass/inertia +PCT %, k_f -PCT/2 % against the controller's model.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed for start positions, noise and turbulence.")] = 0,
     wind_m_s: WindSpeed = None,
@@ -76,6 +80,14 @@ def sim(
         finite_option("attitude-bound-rad", attitude_bound_rad, positive=True)
         if drones is not None and drones < 1:
             raise UserError(f"--drones must be at least 1, got {drones}")
+        from triswarm.sitl.estimator import profile
+
+        try:
+            est = None if estimator is None else profile(estimator)
+        except ValueError as exc:
+            raise UserError(f"--estimator: {exc}") from None
+        if est is not None and noise:
+            raise UserError("--noise and --estimator both say what the controllers measure: give one")
         plan = load_plan(plan_name, drones)
         wind = wind_from_options(plan.wind, wind_m_s, wind_from_deg, turbulence, gust)
         rate = plan.controller.rate_hz
@@ -91,7 +103,7 @@ def sim(
 
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
-                           wind=wind)
+                           wind=wind, estimator=est)
         design = plan.check_formation(horizon_s=duration)
         problems = plan.safety_problems(horizon_s=duration)
         if problems and not force:

@@ -60,6 +60,10 @@ def sitl_up(
     clock_drift_ppm: Annotated[float, typer.Option(help="The flight controllers' clocks run this much faster than "
                                                         "simulated time (a crystal's error): every stamp they send, "
                                                         "TIMESYNC's too [ppm].")] = 0.0,
+    estimator: Annotated[Optional[str], typer.Option(
+        metavar="PROFILE", help="What the flight controllers' estimators report: truth, mocap, rtk or gps (lag, "
+                                "wandering bias, noise; docs/wind.md#estimates-as-autopilots-give-them), before "
+                                "any NOISE_* parameter's white noise.")] = None,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
     autopilot: Annotated[str, typer.Option(help="The flight controllers: triswarm (simulated here), ardupilot "
                                                 "(ArduPilot's own ArduCopter SITL firmware, with deploy/ardupilot/) "
@@ -80,6 +84,7 @@ def sitl_up(
     from triswarm.companion.state import write_json_atomically
     from triswarm.sitl.launcher import SitlOptions, run_sitl
     from triswarm.sitl.lockstep import LockstepOptions
+    from triswarm.sitl.estimator import profile as estimator_profile
     from triswarm.sitl.profiles import profile as sitl_profile
 
     def write(option: str, path: Path, data: dict) -> None:
@@ -89,6 +94,9 @@ def sitl_up(
             raise UserError(f"{option} {path}: cannot write it ({exc.strerror})") from None
 
     if autopilot in ("ardupilot", "px4"):
+        if estimator is not None:
+            with user_errors():
+                raise UserError("--estimator goes with --autopilot triswarm: a firmware's estimates are its own EKF's")
         return _firmware_up(autopilot, n, first_id, manifest, home, physics_hz, spacing_m, stats, duration_s, param, seed,
                              wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust), firmware, run_dir,
                              truth, quiet, speedup=speedup, lockstep=lockstep, fc_profile=fc_profile, rate_hz=rate_hz,
@@ -99,6 +107,10 @@ def sitl_up(
         for option, value in (("--firmware", firmware), ("--run-dir", run_dir), ("--truth", truth)):
             if value is not None:
                 raise UserError(f"{option} goes with --autopilot ardupilot or px4")
+        try:
+            None if estimator is None else estimator_profile(estimator)
+        except ValueError as exc:
+            raise UserError(f"--estimator: {exc}") from None
         if n < 1:
             raise UserError(f"-n must be at least 1, got {n}")
         finite_option("speedup", speedup, positive=True)
@@ -130,7 +142,7 @@ def sitl_up(
                            base_port=base_port, bind=bind, spacing_m=spacing_m, duration_s=duration_s, first_id=first_id,
                            params=tuple(params), lockstep=LockstepOptions(timeout_s=lockstep_timeout_s, max_rtf=max_rtf or math.inf) if lockstep else None,
                            seed=seed, wind=wind_from_options(None, wind_m_s, wind_from_deg, turbulence, gust),
-                           clock_drift_ppm=clock_drift_ppm)
+                           clock_drift_ppm=clock_drift_ppm, estimator=estimator)
 
         def ready(m: dict) -> None:
             write("--manifest", manifest, m)

@@ -15,6 +15,7 @@ from triswarm.protocol.airframe import ParameterError
 from triswarm.protocol.frames import DEFAULT_HOME, LocalProjection
 from triswarm.protocol.wind import Wind
 
+from .estimator import profile as estimator_profile
 from .fc import LINK_PREFIX
 from .lockstep import LockstepOptions
 from .profiles import profile
@@ -49,6 +50,8 @@ class SitlOptions:
     """The air the vehicles fly in (``protocol.wind``), its turbulence seeded by ``seed``; None: no air."""
     clock_drift_ppm: float = 0.0
     """The flight controllers' clocks run this much faster than simulated time [ppm] (``fc.clock_s``)."""
+    estimator: str | None = None
+    """The flight controllers' estimator profile (``sitl.estimator.PROFILES``); None: the truth."""
 
 
 async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = None,
@@ -58,7 +61,8 @@ async def run_sitl(opts: SitlOptions, on_ready: Callable[[dict], None] | None = 
     if opts.n < 1:
         raise ValueError(f"-n must be at least 1, got {opts.n}")
     swarm = SitlSwarm(opts.n, LocalProjection(*opts.home), physics_hz=opts.physics_hz, spacing_m=opts.spacing_m,
-                      seed=opts.seed, first_id=opts.first_id, wind=opts.wind, profile=profile(opts.fc_profile))
+                      seed=opts.seed, first_id=opts.first_id, wind=opts.wind, profile=profile(opts.fc_profile),
+                      estimator=None if opts.estimator is None else estimator_profile(opts.estimator))
     for i, fc in enumerate(swarm.fcs):
         fc.clock_ppm = opts.clock_drift_ppm
         for code in ("ATT", "LPOS") if opts.rate_hz is not None else ():

@@ -21,6 +21,7 @@ from triswarm.protocol.controller import FormationController
 from triswarm.protocol.plan import Plan
 from triswarm.protocol.wind import Wind
 
+from .estimator import Estimator, EstimatorProfile
 from .physics import RATE_B, Plant
 
 
@@ -59,6 +60,9 @@ class SimConfig:
     seed: int = 0
     start_position_m: np.ndarray | None = None
     """(N, 3) start positions; default: resting on the ground within 3 m of the origin."""
+    estimator: EstimatorProfile | None = None
+    """What the controllers measure, as an autopilot's estimator reports it (``sitl.estimator``: lag,
+    wandering bias, noise); None: the truth (with ``noise``'s white noise if set; not both)."""
     wind: Wind | None = None
     """The air the plant flies in (its turbulence seeded by ``seed``); None: the plan's ``[wind]``,
     and no air at all (the paper's model) when the plan has none."""
@@ -74,6 +78,8 @@ class SimConfig:
             raise ValueError(f"max rpm must be a positive number, got {self.max_rpm!r}")
         if not (math.isfinite(self.mismatch_pct) and -50.0 < self.mismatch_pct < 100.0):
             raise ValueError(f"mismatch must be a percentage between -50 and 100, got {self.mismatch_pct!r}")
+        if self.noise is not None and self.estimator is not None:
+            raise ValueError("sensor noise and an estimator profile are two ways of saying what is measured: give one")
 
 
 @dataclass
@@ -145,9 +151,13 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     ctrl = FormationController.for_plan(plan, n, rate, wind, delay_s=config.controller_delay_s,
                                        measured_rates=config.measured_rates)
     plant.reset(start)
-    ctrl.reset(plant.observe().paper_state())
+    x0 = plant.observe().paper_state()
+    estimator = None if config.estimator is None else Estimator(config.estimator, n, np.random.default_rng(config.seed + 2))
+    if estimator is not None:  # (a companion starts from what its flight controller says, as the entry does)
+        x0[:, 6:12] = estimator.report(0.0, plant.output(), x0[:, 3:6])[0]
+    ctrl.reset(x0)
     plant.reset(start, servo_rad=ctrl.initial_actuation.alpha_rad)
-    offsets = plan.entry_formation(start, 0.0)
+    offsets = plan.entry_formation(x0[:, 9:12], 0.0)
     adjacency = {t.name: scipy.sparse.csr_matrix(t.adjacency) for t in plan.schedule.topologies}
 
     steps = int(round(config.duration_s * rate))
@@ -183,6 +193,8 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
             diverged_drone = int(np.flatnonzero(bad)[0]) + 1
             break
         rates = plant.state[:, RATE_B].copy()
+        if estimator is not None:
+            y, rates, _ = estimator.report(t, y, rates)
         if config.noise is not None:
             y[:, 0:3] += rng.normal(0.0, config.noise.attitude_rad, (n, 3))
             y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))

@@ -27,6 +27,7 @@ from triswarm.protocol.plan import DEFAULT_Q, DEFAULT_Q_BAR, DEFAULT_Q_DISTURBAN
 from triswarm.protocol.rfl import RFL
 from triswarm.protocol.wind import Wind
 
+from .estimator import Estimator, EstimatorProfile
 from .fc import FlightController, drain_batteries
 from .physics import SENSOR_COLUMNS, Plant, quaternion_from_euler
 from .profiles import TRISWARM, Profile
@@ -65,7 +66,9 @@ class SitlSwarm:
     def __init__(self, n: int, home: LocalProjection | None = None, airframe: Airframe = TABLE_1,
                  physics_hz: float = 1000.0, control_hz: float = 200.0, spacing_m: float = 2.5, seed: int = 0,
                  boot_unix_s: float | None = None, first_id: int = 1, wind: Wind | None = None,
-                 profile: Profile = TRISWARM) -> None:
+                 profile: Profile = TRISWARM, estimator: EstimatorProfile | None = None) -> None:
+        """estimator: what the flight controllers' estimators report (``sitl.estimator``: lag,
+        wandering bias, noise), before their NOISE_* parameters' white noise; None: the truth."""
         if n < 1:
             raise ValueError(f"a swarm needs at least one vehicle, got {n}")
         self.n = n
@@ -87,6 +90,7 @@ class SitlSwarm:
         for i, fc in enumerate(self.fcs):
             fc.on_command = functools.partial(self._commanded.add, i)
         self.seed = seed
+        self.estimator = None if estimator is None else Estimator(estimator, n, np.random.default_rng((seed, 1)))
         self._rows: Snapshot | None = None
         self._rows_step = -1
         self._snapshots: dict[int, Snapshot] = {}
@@ -124,6 +128,13 @@ class SitlSwarm:
             return self._rows
         ideal = self.plant.sensors()
         col = {name: ideal[:, c] for name, c in SENSOR_COLUMNS.items()}
+        if self.estimator is not None:
+            y, col["rate_b_rad_s"], col["velocity_e_m_s"] = self.estimator.report(
+                self.time_s, np.concatenate([col["euler_rad"], col["position_m"]], axis=1), col["rate_b_rad_s"],
+                col["velocity_e_m_s"])
+            col["euler_rad"], col["position_m"] = y[:, 0:3], y[:, 3:6]
+            col["velocity_b_m_s"] = np.einsum("nji,nj->ni", model.rotation_body_to_earth(col["euler_rad"]), col["velocity_e_m_s"])
+            col["quaternion"] = quaternion_from_euler(col["euler_rad"])
         version = sum(fc.params_version for fc in self.fcs)
         if self._noise[0] != version:
             self._noise = (version, np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
