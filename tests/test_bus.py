@@ -40,6 +40,7 @@ def swarm():
     return f"test-{uuid.uuid4().hex[:8]}"
 
 
+@pytest.mark.realtime  # (an estimate wakes the loop within 0.5 s, a closed agent's liveliness goes within 3 s: wall time)
 def test_estimates_status_garbage_and_liveliness(swarm):
     base = free_ports(3, contiguous=True)[0] - 1
 

@@ -129,8 +129,8 @@ class NumpyController:
 def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent(paper_plan, rng, air_density_kg_m3,
                                                                                   wind_estimate_rate_1_s):
     """Six agents at once (compiled kernels) against the numpy reference above, over ticks with noisy
-    measurements and arbitrary protocol inputs (some drive rotors past the servo range); and agent 1
-    alone gives agent 1's commands. In no air and in air (the drag cancelled, drones moving at up to
+    measurements and arbitrary protocol inputs (some drive rotors past the servo range); and six
+    single-agent controllers, one per agent, give the six-agent controller's commands, agent by agent. In no air and in air (the drag cancelled, drones moving at up to
     14 m/s), with and without the wind estimate."""
     d = paper_plan.design
     n = 6
@@ -140,18 +140,20 @@ def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent
     if air_density_kg_m3:
         x[:, 0:3] = rng.uniform(-8, 8, (n, 3))
     air = {"air_density_kg_m3": air_density_kg_m3, "wind_estimate_rate_1_s": wind_estimate_rate_1_s}
-    batch, single, ref = FormationController(d, n, **air), FormationController(d, 1, **air), \
-        NumpyController(d, n, 200.0, 3.0, **air)
+    batch, ref = FormationController(d, n, **air), NumpyController(d, n, 200.0, 3.0, **air)
+    singles = [FormationController(d, 1, **air) for _ in range(n)]  # (one per drone, as the companions run it)
     for c in (batch, ref):
         c.reset(x)
-    single.reset(x[:1])
+    for i, single in enumerate(singles):
+        single.reset(x[i:i + 1])
     topo = paper_plan.schedule.topologies[1]
     beyond_range = False
     for _ in range(40):
         y = x[:, 6:12] + rng.normal(0, 0.01, (n, 6))
         xi = batch.observe(y)
         assert np.allclose(xi, ref.observe(y), rtol=1e-9, atol=1e-9)
-        assert np.allclose(single.observe(y[:1]), xi[:1], rtol=1e-12, atol=1e-12)
+        for i, single in enumerate(singles):
+            assert np.allclose(single.observe(y[i:i + 1]), xi[i:i + 1], rtol=1e-12, atol=1e-12), i
         gamma = rng.normal(0, 100, (n, 6))
         v = protocol_input(d, xi, topo.adjacency @ xi, topo.in_degree, topo.pinning, np.zeros(12), gamma)
         act = batch.actuate(v)
@@ -161,8 +163,12 @@ def test_compiled_controller_equals_a_numpy_reference_and_agents_are_independent
         assert np.allclose(batch.thrust_scale, ref.kappa, rtol=1e-12)
         assert np.allclose(batch.wind_estimate_e_m_s, ref.wind, rtol=1e-9, atol=1e-12)
         beyond_range |= np.abs(alpha).max() >= d.rfl.airframe.servo_limit_rad
-        one = single.actuate(v[:1])
-        assert np.allclose(one.omega_rad_s, act.omega_rad_s[:1], rtol=1e-12) and np.allclose(one.alpha_rad, act.alpha_rad[:1])
+        for i, single in enumerate(singles):
+            one = single.actuate(v[i:i + 1])
+            assert np.allclose(one.omega_rad_s, act.omega_rad_s[i:i + 1], rtol=1e-12), i
+            assert np.allclose(one.alpha_rad, act.alpha_rad[i:i + 1], rtol=1e-12, atol=1e-12), i
+            assert np.allclose(single.thrust_scale, batch.thrust_scale[i:i + 1], rtol=1e-12), i
+            assert np.allclose(single.wind_estimate_e_m_s, batch.wind_estimate_e_m_s[i:i + 1], rtol=1e-12, atol=1e-12), i
     assert np.abs(batch.thrust_scale - 1.0).max() > 1e-6  # (the adaptation did move)
     assert beyond_range  # (the servo range was met)
     if wind_estimate_rate_1_s:

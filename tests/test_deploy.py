@@ -488,6 +488,7 @@ def test_config_file_and_command_line(tmp_path):
         resolve_options(None, {**defaults, "id": 1, "fc": "udp:a:1"}, set())
 
 
+@pytest.mark.realtime  # (the failed Zenoh check is judged bounded in wall time)
 def test_check_lines_and_exit_status(tmp_path):
     cfg = drone_config(tmp_path, fc="/dev/null:57600")
     lines: list[str] = []

@@ -36,7 +36,7 @@ from triswarm.protocol.mavlink import mavlink
 from .stack_helpers import BusObserver, GroundStation, judge, small_plan, status_changes, wait_sim
 from .poll import poll
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # (the loss is judged said within seconds of wall time)
 N = 3
 SWARM = "trio"
 RESTARTED_MAX_RTF = 3.0

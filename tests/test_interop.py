@@ -17,6 +17,7 @@ from pymavlink import mavutil
 
 from triswarm.protocol.frames import LocalProjection
 
+from .poll import poll
 from .sitl_helpers import command, connect, read_param, sitl_process
 
 M = mavutil.mavlink
@@ -96,7 +97,17 @@ def test_mavsdk_sees_every_vehicle_in_the_manifest(tmp_path):
         pilot = connect(manifest["vehicles"][1]["links"]["companion"]["pymavlink"])
         assert command(pilot, 2, M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_ACCEPTED
         assert command(pilot, 2, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0, home.alt_m + 2.5).result == M.MAV_RESULT_ACCEPTED
-        time.sleep(5.0)
+        # until it hovers there, as its ground-station link reports (what mavsdk reads below)
+        gcs = connect(manifest["vehicles"][1]["links"]["gcs"]["pymavlink"])
+        last = []
+
+        def read_position() -> None:
+            m = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=0.2)
+            if m is not None:
+                last[:] = [m]
+
+        poll(lambda: last and abs(last[0].relative_alt / 1000 - 2.5) < 0.02 and abs(last[0].vz) <= 2, 30.0,
+             "vehicle 2 hovering at 2.5 m", every_s=0.0, step=read_position)
 
         async def all_vehicles():
             return await asyncio.gather(*(

@@ -16,6 +16,7 @@ from pymavlink import mavutil
 from triswarm.protocol.mavlink import CustomMode
 from triswarm.sitl.lockstep import Lockstep, LockstepOptions
 
+from .poll import poll
 from .sitl_helpers import command, sitl_process
 
 M = mavutil.mavlink
@@ -60,8 +61,29 @@ class Companion:
             out.append(m)
         return out
 
+    def until_answered(self) -> list:
+        """Everything this link gets before the answer to a parameter read sent now. The SITL takes
+        a link's datagrams in order and steps its clock in the callback that takes an answer, so any
+        state it sent after the datagrams before the read (a step they caused) is in this list."""
+        self.conn.mav.param_request_read_send(self.sysid, 1, b"MASS_KG", -1)
+        got: list = []
+
+        def take() -> None:
+            m = self.conn.recv_match(blocking=True, timeout=0.05)
+            if m is not None:
+                got.append(m)
+
+        poll(lambda: got and got[-1].get_type() == "PARAM_VALUE" and got[-1].param_id == "MASS_KG", 3.0,
+             "the answer to a parameter read", every_s=0.0, step=take)
+        return got[:-1]
+
     def close(self) -> None:
         self.conn.close()
+
+
+def newer(msgs: list, than_ms: int) -> list:
+    """The states among ``msgs`` newer than ``than_ms``."""
+    return [m.time_boot_ms for m in msgs if m.get_type() == "LOCAL_POSITION_NED" and m.time_boot_ms > than_ms]
 
 
 def test_the_clock_waits_for_every_companion_and_steps_only_on_their_answers(tmp_path):
@@ -73,11 +95,10 @@ def test_the_clock_waits_for_every_companion_and_steps_only_on_their_answers(tmp
             t0 = a.state()
             assert t0 is not None, "no state offered while the clock stands"
             a.answer(t0)  # vehicle 1 is in; vehicle 2's companion has not spoken: the clock stands
-            time.sleep(1.0)
-            assert {m.time_boot_ms for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED"} <= {t0}
+            assert newer(a.until_answered(), t0) == []
             b.hello()
             t0b = b.state()
-            assert t0b == t0
+            assert t0b == t0  # (the state it is offered is the current one: the clock stood until now)
             b.answer(t0b)  # every companion has answered: the clock runs, one control step (5 ms) at a time
             times = []
             for _ in range(20):
@@ -85,19 +106,20 @@ def test_the_clock_waits_for_every_companion_and_steps_only_on_their_answers(tmp
                 assert ta == tb is not None
                 times.append(ta)
                 if len(times) == 10:
-                    time.sleep(0.5)  # a pause of the companions is a pause of the clock (the state may come again)
-                    assert {m.time_boot_ms for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED"} <= {ta}
+                    # a pause of the companions is a pause of the clock: the next state vehicle 1's
+                    # companion gets is the same one offered again, after the clock stood 0.5 s
+                    assert a.state(timeout_s=3.0, again=True) == ta
                 a.answer(ta)
                 b.answer(tb)
             assert [t1 - t2 for t1, t2 in zip(times[1:], times)] == [5] * 19
             # one companion late: nothing moves until it answers
             ta, tb = a.state(), b.state()
             a.answer(ta)
-            time.sleep(0.3)
-            assert not [m for m in a.drain() if m.get_type() == "LOCAL_POSITION_NED" and m.time_boot_ms > ta]
-            # its state is offered again (same instant) while the clock waits for it
+            # its state is offered again (same instant) while the clock waits for it; and up to then
+            # (the read's answer comes after anything sent before it) vehicle 1's companion got no newer one
             again = b.state(timeout_s=2.0, again=True)
             assert again == tb
+            assert newer(a.until_answered(), ta) == []
             b.answer(tb)
             assert a.state() == ta + 5
         finally:
@@ -112,6 +134,7 @@ def test_the_clock_waits_for_every_companion_and_steps_only_on_their_answers(tmp
     assert stats["lockstep"]["started"] and stats["lockstep"]["left"] == []
 
 
+@pytest.mark.realtime  # (the watchdog is on the wall clock: a stall of this process silences vehicle 1's companion too)
 def test_a_silent_companion_leaves_lockstep_and_its_failsafe_runs_on_simulated_time(tmp_path):
     with sitl_process(tmp_path, 2, "--lockstep", "--rate-hz", "200", "--lockstep-timeout-s", "1") as (manifest, _):
         a, b = (Companion(v["links"]["companion"]["pymavlink"], v["sysid"]) for v in manifest["vehicles"])

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import time
 import tty
 from collections import Counter, defaultdict
 
@@ -22,6 +21,7 @@ from triswarm.gcs.scenarios import load_plan
 from triswarm.gcs.stack import Stack, stop_in_turn
 from triswarm.protocol.mavlink import mavlink, new_codec
 
+from .poll import poll_async
 from .serial_bridge import PtyBridge, complete_frames
 from .stack_helpers import judge, small_plan, wait_sim
 
@@ -57,13 +57,6 @@ def _pty(tty_link) -> tuple[int, int]:
     return master, slave
 
 
-async def _until(cond, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < deadline:
-        await asyncio.sleep(0.01)
-    return cond()
-
-
 def test_a_serial_link_on_a_pty_carries_frames_and_outlives_an_unplugged_device(tmp_path):
     """A device name that a udev rule would give (a symlink): frames split across reads are whole; the
     companion's own go out; the device going away is said once, watched no more (no spin), retried
@@ -85,7 +78,7 @@ def test_a_serial_link_on_a_pty_carries_frames_and_outlives_an_unplugged_device(
             os.write(master, one[:7])
             await asyncio.sleep(0.05)
             os.write(master, one[7:] + two)
-            assert await _until(lambda: len(got) == 2, 2.0), got
+            assert await poll_async(lambda: len(got) == 2, 2.0), got
             assert [m.get_type() for m in got] == ["HEARTBEAT", "SYSTEM_TIME"] and got[1].time_boot_ms == 1234
             link.send(mavlink.MAVLink_param_request_read_message(1, 1, b"MOT_MAX_RPM", -1))
             out = b""
@@ -103,8 +96,9 @@ def test_a_serial_link_on_a_pty_carries_frames_and_outlives_an_unplugged_device(
 
             os.close(master)  # unplugged: the port reads as ready, with nothing in it
             master = -1
-            assert await _until(lambda: not link.up, 2.0)
-            await asyncio.sleep(2.5 * REOPEN_EVERY_S)  # (its name still there, but dead: tried again, quietly)
+            assert await poll_async(lambda: not link.up, 2.0)
+            # its name still there, but dead: tried again, quietly (two tries failed, and said nothing)
+            assert await poll_async(lambda: link.counters["reopen_failed"] >= 2, 10 * REOPEN_EVERY_S), link.counters
             assert len(events) == 1 and events[0].startswith(f"fc link {dev},921600 lost (disconnected"), events
             assert link.counters["read_errors"] == 1 and link.counters["lost"] == 1, link.counters
             assert link.counters["reopen_failed"] >= 2, link.counters
@@ -113,9 +107,9 @@ def test_a_serial_link_on_a_pty_carries_frames_and_outlives_an_unplugged_device(
 
             os.close(slave)
             master, slave = _pty(dev)  # plugged in again, under the same name
-            assert await _until(lambda: link.up, 3 * REOPEN_EVERY_S), link.counters
+            assert await poll_async(lambda: link.up, 3 * REOPEN_EVERY_S), link.counters
             os.write(master, hb.pack(fc))
-            assert await _until(lambda: len(got) == 3, 2.0)
+            assert await poll_async(lambda: len(got) == 3, 2.0)
             assert len(events) == 2 and "open again" in events[1], events
         finally:
             link.close()

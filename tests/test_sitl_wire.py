@@ -11,6 +11,7 @@ from pymavlink import mavutil
 from triswarm.protocol.mavlink import CustomMode
 
 from .mavlink_pilot import Pilot
+from .poll import poll
 from .sitl_helpers import command, connect, ports_free, read_param, set_param, sitl_process
 
 M = mavutil.mavlink
@@ -95,8 +96,10 @@ def test_parameters_are_per_vehicle_and_validated(tmp_path):
 def test_arming_refused_with_a_reason(tmp_path):
     with sitl_process(tmp_path, 1) as (manifest, _):
         conn = connect(manifest["vehicles"][0]["links"]["gcs"]["pymavlink"])
-        set_param(conn, 1, "BAT_ARM_PCT", 100.0)  # the avionics have drawn a little since boot
-        time.sleep(0.5)
+        set_param(conn, 1, "BAT_ARM_PCT", 100.0)
+        # (once the avionics have drawn a little since boot, as the battery's report says)
+        poll(lambda: conn.recv_match(type="SYS_STATUS", blocking=True, timeout=0.5) is not None
+             and conn.messages["SYS_STATUS"].battery_remaining < 100, 10.0, "a battery below 100 %", every_s=0.0)
         assert command(conn, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_DENIED
         text = conn.recv_match(type="STATUSTEXT", blocking=True, timeout=3)
         assert text.text.startswith("arming refused: battery")
