@@ -51,7 +51,7 @@ def warm_up() -> None:
 def main(args: list[str]) -> int:
     warm_up()
     simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", "--durations=15", *args]
-    realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", *args]
+    realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", "--durations=25", *args]
     if os.geteuid() != 0:
         first = subprocess.call(simulated, cwd=ROOT)
         return max(first, subprocess.call(realtime, cwd=ROOT))

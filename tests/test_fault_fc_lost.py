@@ -36,7 +36,9 @@ from triswarm.protocol.mavlink import mavlink
 from .stack_helpers import BusObserver, GroundStation, judge, small_plan, status_changes, wait_sim
 from .poll import poll
 
-pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # (the loss is judged said within seconds of wall time)
+pytestmark = pytest.mark.slow
+# (The loss is judged said within seconds of wall time, with LOST_MARGIN_S for a loaded two-core
+# machine: it runs with the simulated-time tests, which keeps `make test` within its time.)
 N = 3
 SWARM = "trio"
 RESTARTED_MAX_RTF = 3.0
