@@ -46,14 +46,19 @@ class LinkError(GcsError):
     """An endpoint that cannot be opened or a manifest that cannot be read (one sentence)."""
 
 
-def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> dict[int, str]:
-    """Drone id -> pymavlink URL, from a manifest and/or ``ID=URL`` strings (these win)."""
+def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> tuple[dict[int, str], dict[int, str]]:
+    """Drone id -> pymavlink URL of each companion, from a manifest and/or ``ID=URL`` strings (these
+    win); and of each flight controller the manifest gives a link of its own (``fc_mavlink``: PX4
+    flown over Zenoh)."""
     out: dict[int, str] = {}
+    fc: dict[int, str] = {}
     if manifest is not None:
         try:
             data = json.loads(Path(manifest).read_text(encoding="utf-8"))
             for d in data["drones"]:
                 out[int(d["id"])] = str(d["mavlink"])
+                if "fc_mavlink" in d:
+                    fc[int(d["id"])] = str(d["fc_mavlink"])
         except FileNotFoundError:
             raise LinkError(f"{manifest}: no such swarm manifest") from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -69,19 +74,7 @@ def parse_endpoints(manifest: Path | None, endpoints: list[str] | None) -> dict[
         out[int(ident)] = url
     if not out:
         raise LinkError("no drones: give --manifest (swarm.json) or --endpoint ID=URL")
-    return out
-
-
-def fc_endpoints_of(manifest: Path | None) -> dict[int, str]:
-    """Drone id -> pymavlink URL of the flight controllers a manifest gives a link of their own
-    (``fc_mavlink``: PX4 flown over Zenoh); call after ``parse_endpoints`` has read it."""
-    if manifest is None:
-        return {}
-    try:
-        drones = json.loads(Path(manifest).read_text(encoding="utf-8"))["drones"]
-        return {int(d["id"]): str(d["fc_mavlink"]) for d in drones if "fc_mavlink" in d}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise LinkError(f"{manifest}: not a swarm manifest ({exc.__class__.__name__}: {exc})") from None
+    return out, fc
 
 
 def write_manifest(path: Path, swarm: str, endpoints: dict[int, str], fc_endpoints: dict[int, str] | None = None) -> None:

@@ -56,8 +56,7 @@ def read_tlog(data: bytes, stats: TlogStats) -> Iterator[tuple[float, object]]:
         msg, frame_len = _frame_at(mav, data, pos + TLOG_TIMESTAMP.size)
         if isinstance(msg, mavlink.MAVLink_unknown):
             end = pos + TLOG_TIMESTAMP.size + frame_len
-            if end == len(data) or (end + TLOG_TIMESTAMP.size < len(data)
-                                    and data[end + TLOG_TIMESTAMP.size] in _MAGICS):
+            if end == len(data) or _FRAME_START.match(data, end + TLOG_TIMESTAMP.size):
                 stats.unknown += 1  # (a whole record, the next one right after it: not garbage)
                 if lost_at is not None:
                     stats.skipped_bytes += pos - lost_at
@@ -83,9 +82,6 @@ def read_tlog(data: bytes, stats: TlogStats) -> Iterator[tuple[float, object]]:
         stats.skipped_runs += 1
     if lost_at is not None:
         stats.skipped_bytes += len(data) - lost_at
-
-
-_MAGICS = (mavlink.PROTOCOL_MARKER_V1, mavlink.PROTOCOL_MARKER_V2)
 
 
 def _frame_at(mav, data: bytes, at: int) -> tuple[object | None, int]:

@@ -108,7 +108,8 @@ def sitl_up(
             if value is not None:
                 raise UserError(f"{option} goes with --autopilot ardupilot or px4")
         try:
-            None if estimator is None else estimator_profile(estimator)
+            if estimator is not None:
+                estimator_profile(estimator)
         except ValueError as exc:
             raise UserError(f"--estimator: {exc}") from None
         if n < 1:

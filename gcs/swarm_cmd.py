@@ -21,7 +21,7 @@ from triswarm.protocol.plan_transfer import PlanTransferError, decode_plan, enco
 
 from . import missions
 from .errors import UserError, console, err_console, user_errors
-from .link import GroundLink, fc_endpoints_of, parse_endpoints
+from .link import GroundLink, parse_endpoints
 from .scenarios import PlanArgument
 from .swarm import command_all, flight_clock, for_each, start_all, take_off_all, upload_all
 
@@ -53,8 +53,7 @@ def swarm_link(manifest: Path | None, endpoint: list[str] | None, drones: list[i
             key = None if signing_key is None else read_signing_key(signing_key)
         except ValueError as exc:  # unreadable, or not a key (a sentence naming the file)
             raise UserError(f"--signing-key {exc}") from None
-        endpoints = parse_endpoints(manifest, endpoint)
-        fc_endpoints = fc_endpoints_of(manifest)
+        endpoints, fc_endpoints = parse_endpoints(manifest, endpoint)
         unknown = sorted(set(drones or []) - set(endpoints))
         if unknown:
             raise UserError(f"--drone {unknown[0]}: not in the swarm (drones {', '.join(map(str, sorted(endpoints)))})")

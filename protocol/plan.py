@@ -17,8 +17,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
                       name, pinned = [agents], edges = [[from, to], ...] (agents from 1, 0 = leader)
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
-    [controller]      rate_hz, thrust_adaptation_rate_1_s, air_density_kg_m3 (the drag the controllers cancel),
-                      wind_estimate_rate_1_s
+    [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
 
@@ -110,8 +109,7 @@ class ControllerSettings:
     flown in (ISA sea level, 1.225, unless [wind] says otherwise), and 0 (no drag term: the paper's
     law) when it is flown in no air (``Plan.controller_air_density_kg_m3``)."""
     wind_estimate_rate_1_s: float = 1.0
-    """Rate [1/s] at which the controllers' estimate of the horizontal wind takes up the
-    disturbance its drag explains (0: the drag is cancelled as in still air); only in air."""
+    """Rate [1/s] of the controllers' horizontal wind estimate, in air (0: drag cancelled as in still air)."""
 
 
 @dataclass(frozen=True)

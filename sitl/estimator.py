@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from triswarm.protocol.metrics import wrap_angle
+
 
 @dataclass(frozen=True)
 class EstimatorProfile:
@@ -121,5 +123,5 @@ class Estimator:
         t1, y1, r1, v1 = self._past[1]
         f = (t_s - t0) / (t1 - t0)
         step = y1 - y0
-        step[:, 0:3] = (step[:, 0:3] + math.pi) % (2.0 * math.pi) - math.pi
+        step[:, 0:3] = wrap_angle(step[:, 0:3])
         return y0 + f * step, r0 + f * (r1 - r0), None if v0 is None else v0 + f * (v1 - v0)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import socket
 
-from triswarm.gcs.link import GroundLink, fc_endpoints_of, parse_endpoints, write_manifest
+from triswarm.gcs.link import GroundLink, parse_endpoints, write_manifest
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink, new_codec
 
 from .poll import poll
@@ -78,7 +78,7 @@ def test_commands_for_the_flight_controller_go_to_its_own_link(tmp_path):
 def test_a_swarm_manifest_names_each_flight_controllers_own_link(tmp_path):
     path = tmp_path / "swarm.json"
     write_manifest(path, "pair", {1: "udpout:127.0.0.1:14601", 2: "udpout:127.0.0.1:14602"}, {2: "udpout:127.0.0.1:18572"})
-    assert parse_endpoints(path, None) == {1: "udpout:127.0.0.1:14601", 2: "udpout:127.0.0.1:14602"}
-    assert fc_endpoints_of(path) == {2: "udpout:127.0.0.1:18572"}
+    assert parse_endpoints(path, None) == ({1: "udpout:127.0.0.1:14601", 2: "udpout:127.0.0.1:14602"},
+                                           {2: "udpout:127.0.0.1:18572"})
     write_manifest(path, "pair", {1: "udpout:127.0.0.1:14601"})
-    assert fc_endpoints_of(path) == {}
+    assert parse_endpoints(path, None)[1] == {}
