@@ -73,9 +73,7 @@ from .netem import need_netns
 from .stack_helpers import judge, log_events
 from .test_monitor import table_rows, triswarm
 
-pytestmark = pytest.mark.slow
-# (The monitor's view and the cut are judged on wall time, with margins for a loaded two-core machine:
-# it runs with the simulated-time tests, which keeps `make test` within its time.)
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # (the monitor's view and the cut are judged on wall time)
 SWARM = "paper-hexagon"
 HOSTS = {"a": [1, 2], "b": [3, 4], "c": [5, 6]}
 SETTLED_AT, CUT_AT, HOLD_AT, RESTORE_AT, TWO_CHAIN_AT = 16.0, 19.0, 25.0, 27.0, 30.0
