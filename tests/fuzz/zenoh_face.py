@@ -158,6 +158,7 @@ def fuzz_zenoh(n: int, workdir: Path, seed: int = 4) -> Report:
             health, status = _first_reports(session, swarm)
             listened = sorted(int(j) for j in health["neighbour_age_ms"])
             inputs = Inputs(rng, swarm, status["plan"], listened, read_plan_spec(str(PLAN))[0]["drones"])
+            _until_subscribed(session, [estimate_key(swarm, j) for j in listened] + [status_key(swarm, AGENT + 1)])
             sent_status, taken_status = _fuzz(report, session, cuf, inputs, n, swarm)
             final = _settle(session, swarm, report, sent_status)
         finally:
@@ -190,6 +191,21 @@ def fuzz_zenoh(n: int, workdir: Path, seed: int = 4) -> Report:
     report.compare()
     report.problems += [f"crash: {c}" for c in crashes(cuf.log_tail(10**7))]
     return report
+
+
+def _until_subscribed(session, keys: list[str], timeout_s: float = 30.0) -> None:
+    """Until this session knows the companion subscribes to each of ``keys``: a put before that is
+    dropped here, with no one to route it to (seen: the first batch of a fuzz lost on a busy machine,
+    the companion's reports heard before its subscriptions)."""
+    pubs = [session.declare_publisher(key) for key in keys]
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not all(pub.matching_status.matching for pub in pubs):
+            assert time.monotonic() < deadline, f"the companion's subscriptions to {keys} within {timeout_s:g} s"
+            time.sleep(0.05)
+    finally:
+        for pub in pubs:
+            pub.undeclare()
 
 
 def _first_reports(session, swarm: str, timeout_s: float = 30.0) -> tuple[dict, dict]:
