@@ -6,7 +6,6 @@ import asyncio
 import logging
 import math
 import socket
-import time
 from collections import Counter
 import tomllib
 from pathlib import Path
@@ -22,6 +21,7 @@ from triswarm.protocol.codec import AgentStatus, Estimate, agent_of_key, encode_
 from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink as M, new_codec
 from triswarm.protocol.plan import PlanError, plan_from_dict
 from triswarm.protocol.plan_transfer import PlanTransferError, field_value
+from .poll import poll
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -207,9 +207,10 @@ def test_the_routing_keeps_back_what_a_ground_station_may_not_send_the_flight_co
         station.send(M.MAVLink_param_request_read_message(1, 1, b"SIM_LOCKSTEP", -1).pack(spoofed))
         station.send_msg(M.MAVLink_param_request_read_message(1, 1, b"MOT_MAX_RPM", -1))
         assert station.probe(1)
-        deadline = time.monotonic() + 10.0
-        while station.heard["PARAM_VALUE"] < 2 and time.monotonic() < deadline:  # (the probe's, and the fc's)
-            time.sleep(0.05)
+
+        def read_reached() -> bool:  # (sent last, on the same path: what was kept back would be in by then)
+            return any(m.get_srcSystem() == 255 and m.get_type() == "PARAM_REQUEST_READ" for m in list(got))
+        poll(read_reached, 30.0, "the parameter read reaching the flight controller")
         reached = [(m.get_srcSystem(), m.get_type()) for m in got if m.get_srcComponent() != COMP_ONBOARD]
         # (the station's heartbeats reach it too; the spoofed read does not)
         assert set(reached) <= {(255, "HEARTBEAT"), (255, "PARAM_REQUEST_READ")}, reached
