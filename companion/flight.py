@@ -31,6 +31,8 @@ from triswarm.protocol.codec import AgentStatus
 from triswarm.protocol.formation import Formation, Kinematics, QuinticTransfer, RelativeTo, Rejoin, Row, Rows, rejoin_duration
 from triswarm.protocol.mavlink import mavlink
 
+from .liveliness import LOCKSTEP_GRACE_S, Liveliness
+
 ARM_LEAD_S = 2.0
 START_GRACE_S = 1.0  # after starting to fly, neighbours not yet heard from still count for the path check
 
@@ -91,6 +93,7 @@ class Flight:
         """Lockstep: the neighbours the watchdog counts absent, each with the instant [plan s] it had no
         estimate for; absent until one for that instant or a later one comes."""
         self._start_task: asyncio.Task | None = None
+        self.liveliness = Liveliness()
         self._presence_base: tuple | None = None
         self._paths: dict[tuple, bool] = {}
         self.t_p = -math.inf  # the instant the newest tick's estimates refer to [plan s]
@@ -345,8 +348,9 @@ class Flight:
     def presence(self) -> tuple[bool, ...]:
         """Which agents count now (``usable``), every one. Of the agents this one does not listen
         to, only liveliness, status and the start decide: that part is kept until one changes."""
-        starting = self.a.fc.now_unix() - self.flying_since < START_GRACE_S
-        key = (self.a.bus.changes, starting)
+        a = self.a
+        starting = a.fc.now_unix() - self.flying_since < START_GRACE_S
+        key = (a.bus.changes, starting, self._kept_alive())
         if self._presence_base is None or self._presence_base[0] != key:
             n = self.a.plans.plan.n_agents
             self._presence_base = (key, [self.usable(j) for j in range(1, n + 1)])
@@ -364,6 +368,13 @@ class Flight:
             found = self._paths[key] = bool(topo.reachable_from_leader(np.array(present))[self.a.id - 1])
         return found
 
+    def _kept_alive(self) -> frozenset[int]:
+        """The agents whose liveliness token went but that still count as alive (lockstep's grace,
+        ``liveliness.py``)."""
+        a = self.a
+        return self.liveliness.update(a.bus.alive, a.bus.changes, self.t_p,
+                                      LOCKSTEP_GRACE_S if a.fc.answers.lockstep else 0.0)
+
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
         with an estimate younger than NB_TIMEOUT_S. A neighbour whose fresh estimates come counts
@@ -374,7 +385,7 @@ class Flight:
         if j == a.id:
             return True
         bus = a.bus
-        alive = j in bus.alive
+        alive = j in bus.alive or j in self._kept_alive()
         if not alive and (j not in a.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
         starting = a.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
@@ -400,9 +411,10 @@ class Flight:
 
     def why_absent(self, j: int) -> str:
         bus = self.a.bus
-        if j not in bus.alive and j not in self.a.listen_to:
+        alive = j in bus.alive or j in self._kept_alive()
+        if not alive and j not in self.a.listen_to:
             return "no liveliness"
-        lost = "" if j in bus.alive else "no liveliness, "
+        lost = "" if alive else "no liveliness, "
         status = bus.status_of(j, self.a.plans_on_bus)
         nb = bus.estimates.get(j)
         if nb is not None and nb.heard:

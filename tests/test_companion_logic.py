@@ -188,13 +188,14 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
 
     from triswarm.companion.bus import Neighbour
     from triswarm.companion.flight import Flight
+    from triswarm.companion.liveliness import LOCKSTEP_GRACE_S
     from triswarm.protocol.codec import AgentStatus
 
     plan, timeout_s = 7, 0.2
     estimates = {j: Neighbour() for j in (2, 3, 4)}
-    bus = SimpleNamespace(alive={1, 4}, estimates=estimates, status_of=lambda j, plans: None)
+    bus = SimpleNamespace(alive={1, 4}, changes=0, estimates=estimates, status_of=lambda j, plans: None)
     agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
-                            fc=SimpleNamespace(now_unix=lambda: 1000.0),
+                            fc=SimpleNamespace(now_unix=lambda: 1000.0, answers=SimpleNamespace(lockstep=False)),
                             params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
     flight = Flight(agent)
     flight.t_p = 50.0
@@ -206,6 +207,20 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     assert not flight.usable(3) and flight.why_absent(3).startswith("no liveliness, status ?, estimate")  # stale
     assert flight.usable(4)  # not listened to, alive
     bus.alive.discard(4)
+    bus.changes += 1
     assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
+    # in lockstep, a token gone counts only after LOCKSTEP_GRACE_S of plan time (a starved machine
+    # expires Zenoh's lease on the wall clock while the flight's clock stands)
+    agent.fc.answers.lockstep = True
+    bus.alive.add(4)
+    bus.changes += 1
+    assert flight.usable(4)
+    bus.alive.discard(4)
+    bus.changes += 1
+    assert flight.usable(4) and flight.usable(4)
+    flight.t_p = 50.0 + LOCKSTEP_GRACE_S
+    assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
+    flight.t_p = 50.0
+    agent.fc.answers.lockstep = False
     estimates[2].plan_id = plan + 1  # another plan's estimates are no sign of this plan's neighbour
     assert not flight.usable(2)
