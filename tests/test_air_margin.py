@@ -61,21 +61,21 @@ def test_tilt_and_rotor_speed_of_a_hover_in_steady_wind_are_the_closed_form(from
         assert d.rotor_speed_margin_pct(AF)[0] == pytest.approx(100.0 * (1.0 - omega / AF.max_rotor_speed_rad_s))
 
 
-def test_turbulence_is_taken_from_its_worst_direction():
+@pytest.mark.parametrize("from_deg", [0.0, 17.0, 45.0])
+def test_turbulence_is_taken_from_its_worst_direction(from_deg):
     """3 sigma of moderate turbulence on a hovering drone: the largest tilt the sampled directions
-    find is within 1 deg under (and never over) the largest over 40,000 directions of the closed form."""
-    wind = Wind(turbulence_sigma_w_m_s=1.54)
+    find is within 0.25 deg under the largest over 200,000 directions of the closed form (and not over it)."""
+    wind = Wind(turbulence_sigma_w_m_s=1.54, from_deg=from_deg)
     sigma = 3.0 * wind.intensities_m_s()
     d = hover_demand(air_margin.design_winds_e_m_s(wind, 3.0))
-    rng = np.random.default_rng(0)
-    unit = rng.normal(size=(40_000, 3))
+    unit = np.random.default_rng(0).normal(size=(200_000, 3))
     unit /= np.linalg.norm(unit, axis=1, keepdims=True)
     air_m_s = unit * sigma  # (along, across, up): sigma_u = sigma_v, so x, y, z alike
     push_n = -DRAG_N_S2_M2 * np.linalg.norm(air_m_s, axis=1, keepdims=True) * air_m_s + [0.0, 0.0, WEIGHT_N]
-    truth = level_hover_tilts_rad(push_n).max()  # the drag k |w| w of the moving air, taken up by the rotors
-    found = d.tilt_max_rad[0, 0]
-    assert math.degrees(truth) - 1.0 < math.degrees(found) <= math.degrees(truth) + 1e-9
-    assert math.degrees(found) > 15.0  # (8.3 m/s across, 3 sigma_v: it is the air, not the hover's 3.6 deg)
+    truth = math.degrees(level_hover_tilts_rad(push_n).max())  # the drag k |w| w of the moving air, taken up by the rotors
+    found = math.degrees(d.tilt_max_rad[0, 0])
+    assert truth - 0.25 < found <= truth + 0.01
+    assert found > 15.0  # (8.3 m/s across, 3 sigma_v: it is the air, not the hover's 3.6 deg)
 
 
 def test_gusts_and_turbulence_add_to_the_steady_wind():
