@@ -13,6 +13,7 @@ from rich.markup import escape
 from rich.panel import Panel
 from rich.table import Table
 
+from triswarm.protocol import air_margin
 from triswarm.protocol.airframe import RPM_TO_RAD_S
 from triswarm.protocol.errors import PlanError
 
@@ -22,7 +23,8 @@ from .scenarios import PlanArgument, load_plan
 
 if TYPE_CHECKING:
     from triswarm.protocol.design import Design
-    from triswarm.protocol.plan import ActuatorDemand, Plan
+    from triswarm.protocol.air_margin import ActuatorDemand
+    from triswarm.protocol.plan import Plan
     from triswarm.protocol.separation import Approach
 
     from . import plan_flight
@@ -48,16 +50,21 @@ def check(
                                                               "(default: check.position_bound_m, 0.10).")] = None,
     attitude_bound_rad: Annotated[Optional[float], typer.Option("--attitude-bound-rad", help="Flight verdict: attitude "
                                                                 "bound (default: check.attitude_bound_rad, 0.02).")] = None,
+    max_wind: Annotated[bool, typer.Option("--max-wind", help="Also find the largest steady wind, from any direction "
+                                           "(every 15 deg) with the plan's turbulence and gusts on top, in which every "
+                                           "drone keeps check's margins.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the design summary as JSON.")] = False,
 ) -> None:
     """Check a plan as Algorithm 1 does, certify its switching, and fly it in simulation.
 
     The checks: (76) per drone, Assumption 1 per topology, (91) and the Hurwitz conditions (77),
-    the rotor speeds and servo angles that flying the formation exactly needs, the certificate of
+    the rotor speeds and servo angles that flying the formation exactly needs, the margins that
+    leaves to the motor limit and the servo range in the plan's design air ([wind]: its steady wind,
+    its gusts at their peak, 3 sigma of its turbulence from the worst direction), the certificate of
     the switched formation-error system, and the minimum separation along the reference. Then the
-    plan is flown in the in-process simulation (nominal plant, from the ground) and every drone must
-    stay within the bounds over the settled window. "plan OK" means all of that passed. A refused
-    plan ends with one sentence and exit status 2."""
+    plan is flown in the in-process simulation (nominal plant, from the ground, in the plan's
+    [wind]) and every drone must stay within the bounds over the settled window. "plan OK" means
+    all of that passed. A refused plan ends with one sentence and exit status 2."""
     with user_errors():
         require_positive(horizon_s=horizon_s, min_separation_m=min_separation_m, position_bound_m=position_bound_m,
                          attitude_bound_rad=attitude_bound_rad)
@@ -70,8 +77,14 @@ def check(
             plan = dataclasses.replace(plan, check_settings=dataclasses.replace(plan.check_settings, **changes))
         horizon = plan.duration_s if horizon_s is None else horizon_s
         design = plan.check(horizon_s=horizon, step_s=CHECK_STEP_S)
-        demand = plan.actuator_demand(np.arange(0.0, horizon + 1e-9, CHECK_STEP_S))
+        times = np.arange(0.0, horizon + 1e-9, CHECK_STEP_S)
+        demand = plan.design_demand(times)
         approach = plan.closest_approach(horizon, CHECK_STEP_S)
+        largest = None
+        if max_wind:
+            c = plan.check_settings
+            largest = air_margin.largest_steady_wind_m_s(plan.rfl, plan.leader, plan.formation, times, plan.wind,
+                                                         c.turbulence_sigmas, c.rotor_speed_margin_pct, c.tilt_margin_deg)
         flight = None
         if not no_simulate:
             if horizon <= plan.settled_from_s:
@@ -83,24 +96,38 @@ def check(
             if flight.problem is not None:
                 raise PlanError(f"{plan.source}: {flight.problem}")
     if as_json:
-        typer.echo(json.dumps(_summary(plan, design, demand, horizon, approach, flight), indent=2))
+        typer.echo(json.dumps(_summary(plan, design, demand, horizon, approach, flight, largest), indent=2))
     else:
-        _print_design(plan, design, demand, horizon, approach, flight)
+        _print_design(plan, design, demand, horizon, approach, flight, largest)
 
 
 def _actuators(plan: Plan, demand: ActuatorDemand) -> list[dict]:
     af = plan.airframe
+    speed_margin, tilt_margin = demand.rotor_speed_margin_pct(af), demand.tilt_margin_rad(af)
     return [{"drone": i + 1,
              "rotor_speed_rpm": [round(float(demand.omega_min_rad_s[:, i].min()) / RPM_TO_RAD_S, 1),
                                  round(float(demand.omega_max_rad_s[:, i].max()) / RPM_TO_RAD_S, 1)],
              "motor_limit_rpm": round(af.max_rotor_speed_rad_s / RPM_TO_RAD_S, 1),
+             "rotor_speed_margin_pct": round(float(speed_margin[i]), 2),
              "tilt_max_deg": round(math.degrees(float(demand.tilt_max_rad[:, i].max())), 2),
-             "servo_range_deg": round(math.degrees(af.servo_limit_rad), 2)}
+             "servo_range_deg": round(math.degrees(af.servo_limit_rad), 2),
+             "tilt_margin_deg": round(math.degrees(float(tilt_margin[i])), 2)}
             for i in range(plan.n_agents)]
 
 
+def _design_air(plan: Plan, demand: ActuatorDemand, largest_steady_wind_m_s: float | None) -> dict:
+    c, af = plan.check_settings, plan.airframe
+    speed, tilt = demand.rotor_speed_margin_pct(af), np.degrees(demand.tilt_margin_rad(af))
+    return {"air": air_margin.describe_design_air(plan.wind, c.turbulence_sigmas),
+            "turbulence_sigmas": c.turbulence_sigmas,
+            "required_rotor_speed_margin_pct": c.rotor_speed_margin_pct, "required_tilt_margin_deg": c.tilt_margin_deg,
+            "rotor_speed_margin_pct": round(float(speed.min()), 2), "rotor_speed_margin_drone": int(speed.argmin()) + 1,
+            "tilt_margin_deg": round(float(tilt.min()), 2), "tilt_margin_drone": int(tilt.argmin()) + 1,
+            "largest_steady_wind_m_s": largest_steady_wind_m_s}
+
+
 def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float, approach: Approach | None,
-             flight: plan_flight.Flight | None) -> dict:
+             flight: plan_flight.Flight | None, largest_steady_wind_m_s: float | None) -> dict:
     return {
         "source": plan.source,
         "name": plan.name,
@@ -115,6 +142,7 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
                        "closest_drones": None if approach is None else [i + 1 for i in approach.pair],
                        "closest_t_s": None if approach is None else approach.t_s},
         "actuators": _actuators(plan, demand),
+        "design_air": _design_air(plan, demand, largest_steady_wind_m_s),
         "controller": {"rate_hz": plan.controller.rate_hz,
                        "thrust_adaptation_rate_1_s": plan.controller.thrust_adaptation_rate_1_s,
                        "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind),
@@ -142,7 +170,7 @@ def _complex(z: complex) -> str:
 
 
 def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: float, approach: Approach | None,
-                  flight: plan_flight.Flight | None) -> None:
+                  flight: plan_flight.Flight | None, largest_steady_wind_m_s: float | None) -> None:
     facts = Table.grid(padding=(0, 2))
     facts.add_column(style="bold")
     facts.add_column()
@@ -173,20 +201,26 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
         feasibility.add_row(str(i + 1), f"feasible over [0, {horizon_s:g}] s")
     console.print(feasibility)
 
-    actuators = Table(title="Actuators on the exact reference (the feedback needs room on top)")
+    c = plan.check_settings
+    air = escape(air_margin.describe_design_air(plan.wind, c.turbulence_sigmas))
+    actuators = Table(title=f"Actuators on the exact reference in the design air: {air} (the margins are the "
+                            f"feedback's room: at least {c.rotor_speed_margin_pct:g} % and {c.tilt_margin_deg:g} deg)")
     actuators.add_column("drone", justify="right")
     actuators.add_column("rotor speed [RPM]", justify="right")
-    actuators.add_column("motor limit", justify="right")
+    actuators.add_column("speed margin", justify="right")
     actuators.add_column("largest tilt [deg]", justify="right")
-    actuators.add_column("servo range", justify="right")
+    actuators.add_column("tilt margin [deg]", justify="right")
     rows = _actuators(plan, demand)
     for i in _shown(plan.n_agents):
         row = rows[i]
         lo, hi = row["rotor_speed_rpm"]
-        actuators.add_row(str(row["drone"]), f"{lo:.0f} - {hi:.0f}", f"{hi / row['motor_limit_rpm']:.0%} of "
-                          f"{row['motor_limit_rpm']:.0f}", f"{row['tilt_max_deg']:.1f}",
-                          f"{row['tilt_max_deg'] / row['servo_range_deg']:.0%} of +-{row['servo_range_deg']:.0f}")
+        actuators.add_row(str(row["drone"]), f"{lo:.0f} - {hi:.0f}",
+                          f"{row['rotor_speed_margin_pct']:.1f} % of {row['motor_limit_rpm']:.0f}",
+                          f"{row['tilt_max_deg']:.1f}", f"{row['tilt_margin_deg']:.1f} of +-{row['servo_range_deg']:.0f}")
     console.print(actuators)
+    if largest_steady_wind_m_s is not None:
+        console.print(f"largest steady wind from any direction (every 15 deg) in which every drone keeps these margins: "
+                      f"{largest_steady_wind_m_s:.1f} m/s (with the plan's turbulence and gusts on top)", soft_wrap=True)
     if approach is not None:
         i, j = approach.pair
         console.print(f"separation: drones {i + 1} and {j + 1} come closest, {approach.distance_m:.3g} m apart at "

@@ -2,7 +2,7 @@
 
 The flight: ``sitl.simulation.simulate`` with the plan's own airframe as the plant (nominal: its
 servo delay and motor limit, no noise, no mismatch), every drone from rest on the ground, over the
-plan's length. The verdict: every drone within check.position_bound_m and check.attitude_bound_rad
+plan's length, in the plan's air (its [wind], turbulence seeded 0; no air when it has none). The verdict: every drone within check.position_bound_m and check.attitude_bound_rad
 of its reference x0 + h_i(t) over the settled window [entry end + check.settle_s, end].
 """
 
@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from triswarm.protocol import metrics
 from triswarm.protocol.airframe import RPM_TO_RAD_S
 from triswarm.protocol.plan import Plan
-from triswarm.sitl.simulation import SimConfig, SimResult, simulate
+from triswarm.protocol.wind import Wind
+from triswarm.sitl.simulation import SimConfig, SimResult, flown_wind, simulate
 
 
 @dataclass(frozen=True)
@@ -25,9 +26,12 @@ class Flight:
     window_s: tuple[float, float]
     problem: str | None
     """Why the flight refuses the plan (one sentence, without the source), or None."""
+    wind: Wind | None = None
+    """The air it was flown in (None: no air)."""
 
     def summary(self) -> dict:
         return {"flown": True, "duration_s": self.window_s[1], "settled_window_s": list(self.window_s),
+                "wind": None if self.wind is None else self.wind.describe(),
                 "wall_time_s": self.result.wall_s, "diverged_at_s": self.result.diverged_at_s,
                 "performance": self.performance.as_dict(), "problem": self.problem}
 
@@ -35,13 +39,14 @@ class Flight:
 def fly(plan: Plan, duration_s: float | None = None, progress: Callable[[float], None] | None = None) -> Flight:
     """Fly ``plan`` for ``duration_s`` (default: the plan's duration) and judge it."""
     duration = plan.duration_s if duration_s is None else duration_s
-    result = simulate(plan, SimConfig(duration_s=duration), progress=progress)
+    config = SimConfig(duration_s=duration)
+    result = simulate(plan, config, progress=progress)
     pos_err, att_err = metrics.formation_errors(plan, result.t_s, result.position_m, result.euler_rad)
     bounds = plan.check_settings
     window = (plan.settled_from_s, duration)
     perf = metrics.assess(result.t_s, pos_err, att_err, window_start_s=window[0], position_bound_m=bounds.position_bound_m,
                           attitude_bound_rad=bounds.attitude_bound_rad)
-    return Flight(result, perf, window, flight_problem(plan, result, perf, window))
+    return Flight(result, perf, window, flight_problem(plan, result, perf, window), flown_wind(plan, config))
 
 
 def flight_problem(plan: Plan, result: SimResult, perf: metrics.Performance, window: tuple[float, float]) -> str | None:

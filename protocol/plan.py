@@ -18,7 +18,8 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off)
     [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled)
-    [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s (CheckSettings)
+    [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s, rotor_speed_margin_pct,
+                      tilt_margin_deg, turbulence_sigmas (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
 
 from __future__ import annotations
@@ -32,15 +33,16 @@ from functools import cached_property
 import numpy as np
 
 from . import graph as graph_mod
-from .airframe import RPM_TO_RAD_S, Airframe, ParameterError, finite_number
+from .air_margin import (DEFAULT_ROTOR_SPEED_MARGIN_PCT, DEFAULT_TILT_MARGIN_DEG, DEFAULT_TURBULENCE_SIGMAS,
+                         ActuatorDemand, actuator_demand, demand_in_air, describe_design_air, margin_problem)
+from .airframe import Airframe, ParameterError, finite_number
 from .certificate import Certificate, LoopMatrices, certify
 from .design import Design, DesignWeights, FormationError, check_feasibility, design
 from .errors import PlanError
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
                         RotatingPolygon, paper_attitudes)
 from .graph import GraphError, Schedule, Topology
-from .model import actuator_inverse
-from .rfl import MAX_PITCH_RAD, RFL, XR_EULER
+from .rfl import RFL
 from .separation import Approach, closest_approach
 from .sizing import SizingError, resized_spec
 from .wind import Wind, wind_from_table
@@ -95,6 +97,12 @@ class CheckSettings:
     """... and within this in roll, pitch and yaw [rad]."""
     settle_s: float = 10.0
     """The settled window starts this long after the entry (climb and blend) ends [s]."""
+    rotor_speed_margin_pct: float = DEFAULT_ROTOR_SPEED_MARGIN_PCT
+    """In the design air every rotor stays this far below the motor limit [% of it] (``air_margin``)."""
+    tilt_margin_deg: float = DEFAULT_TILT_MARGIN_DEG
+    """... and every servo this far inside its range [deg]."""
+    turbulence_sigmas: float = DEFAULT_TURBULENCE_SIGMAS
+    """The design air's turbulence: this many times the [wind] turbulence's intensities."""
 
 
 @dataclass(frozen=True)
@@ -196,9 +204,10 @@ class Plan:
 
     def safety_problems(self, horizon_s: float | None = None, step_s: float = 0.1) -> list[str]:
         """What the formation law and the airframe allow but would still end badly, one sentence
-        each: a switching schedule the certificate cannot vouch for, drones closer than
-        check.min_separation_m along the reference."""
-        problems = [schedule_problem(self)]
+        each: a switching schedule the certificate cannot vouch for, a drone that keeps less than
+        check's margins of its motor limit or servo range in the plan's design air
+        (``margin_problem``), drones closer than check.min_separation_m along the reference."""
+        problems = [schedule_problem(self), self.margin_problem(horizon_s, step_s)]
         approach = self.closest_approach(horizon_s, step_s)
         sep = self.check_settings.min_separation_m
         if approach is not None and approach.distance_m < sep:
@@ -207,6 +216,25 @@ class Plan:
                             f"t = {approach.t_s:.4g} s along the reference, closer than the minimum separation "
                             f"{sep:g} m (check.min_separation_m)")
         return [p for p in problems if p is not None]
+
+    def margin_problem(self, horizon_s: float | None = None, step_s: float = 0.1) -> str | None:
+        """Why the airframe cannot hold the formation in the plan's design air with check's margins
+        left for the feedback (one sentence, ``air_margin.margin_problem``), or None."""
+        times = np.arange(0.0, (self.duration_s if horizon_s is None else horizon_s) + 1e-9, step_s)
+        c = self.check_settings
+        demand = self.design_demand(times)
+        if margin_problem(demand, self.airframe, c.rotor_speed_margin_pct, c.tilt_margin_deg, "") is None:
+            return None
+        calm = None if self.wind is None else actuator_demand(self.rfl, self.leader, self.formation, times,
+                                                               self.wind.air_density_kg_m3, np.zeros((1, 3)))
+        return margin_problem(demand, self.airframe, c.rotor_speed_margin_pct, c.tilt_margin_deg,
+                              describe_design_air(self.wind, c.turbulence_sigmas), calm)
+
+    def design_demand(self, times_s: np.ndarray) -> ActuatorDemand:
+        """``actuator_demand`` in the plan's design air: its [wind] with check.turbulence_sigmas of
+        its turbulence (``air_margin.demand_in_air``); in no air when it has no [wind]."""
+        return demand_in_air(self.rfl, self.leader, self.formation, times_s, self.wind,
+                             self.check_settings.turbulence_sigmas)
 
     def closest_approach(self, horizon_s: float | None = None, step_s: float = 0.1) -> Approach | None:
         """The closest two drones come along x0 + h_i(t) over [0, horizon_s] (``separation``)."""
@@ -279,56 +307,6 @@ def schedule_problem(plan: Plan) -> str | None:
             if any(t.name not in graph_mod.RING_FAMILIES for t in names) else "or raise design.coupling_margin")
     return (f"topology schedule cannot be certified: {what} lets the bound on the formation error grow "
             f"{growth:.3g}x per cycle; {dwell} ({hint})")
-
-
-def actuator_demand(rfl: RFL, leader: Formation, formation: Formation, times_s: np.ndarray) -> "ActuatorDemand":
-    """What flying ``formation`` about ``leader`` exactly asks of each drone's rotors at the given
-    plan times: the RFL (49) at x_r = x0 + h_i(t) with the input that keeps it there,
-    v = B_tilde (x_r_dot - A_r x_r) (exact when (76) holds), through Remark 1 to rotor speeds and
-    servo angles. The feedback needs room on top of this."""
-    times = np.atleast_1d(np.asarray(times_s, dtype=float))
-    x_r, x_r_dot = [], []
-    for t in times:
-        (x0, x0_dot), (h, h_dot) = (f.offsets(float(t)) for f in (leader, formation))
-        x_r.append(x0[0] + h)
-        x_r_dot.append(x0_dot[0] + h_dot)
-    x_r, x_r_dot = np.stack(x_r), np.stack(x_r_dot)  # (T, N, 12)
-    v = (x_r_dot - x_r @ rfl.A_r.T) @ np.linalg.pinv(rfl.B_r).T
-    u, _ = rfl.control_xr(x_r, v)
-    omega, alpha = actuator_inverse(u)  # (T, N, 3) each
-    return ActuatorDemand(times, omega.min(axis=2), omega.max(axis=2), np.abs(alpha).max(axis=2),
-                          np.abs(x_r[..., XR_EULER][..., 1]))
-
-
-@dataclass(frozen=True)
-class ActuatorDemand:
-    """At each plan time checked (T,) and for each drone: its slowest and fastest rotor [rad/s]
-    and the largest servo angle of its rotors from the untilted position [rad], (T, N) each."""
-
-    times_s: np.ndarray
-    omega_min_rad_s: np.ndarray
-    omega_max_rad_s: np.ndarray
-    tilt_max_rad: np.ndarray
-    pitch_rad: np.ndarray
-    """|pitch| of the reference: the RFL holds for |pitch| < 90 deg, the controller to MAX_PITCH_RAD."""
-
-    def problem(self, af: Airframe) -> str | None:
-        """One sentence on the first drone whose reference pitches past the controller's limit or
-        whose rotors pass the motor limit or the servo range (its peak, and when it first passes);
-        None when every drone stays inside all three."""
-        deg = 180.0 / math.pi
-        limits = ((self.pitch_rad, MAX_PITCH_RAD, "a pitch of {:.1f} deg", deg, "the controller's limit ({:.1f} deg)"),
-                  (self.omega_max_rad_s, af.max_rotor_speed_rad_s, "a rotor at {:.0f} RPM", 1.0 / RPM_TO_RAD_S,
-                   "the motor limit ({:.0f} RPM)"),
-                  (self.tilt_max_rad, af.servo_limit_rad, "a rotor tilted {:.1f} deg", deg,
-                   "the servo range (+-{:.1f} deg)"))
-        for i in range(self.tilt_max_rad.shape[1]):
-            for series, limit, need, scale, what in limits:
-                over = np.flatnonzero(~(series[:, i] <= limit))  # (NaN counts as over)
-                if over.size:
-                    return (f"drone {i + 1} needs {need.format(series[:, i].max() * scale)}, past "
-                            f"{what.format(limit * scale)} from t = {self.times_s[over[0]]:g} s")
-        return None
 
 
 # -- parsing -----------------------------------------------------------------------------------
@@ -552,7 +530,10 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),
                            kf.number("position_bound_m", 0.10, positive=True),
                            kf.number("attitude_bound_rad", 0.02, positive=True),
-                           kf.number("settle_s", 10.0, non_negative=True))
+                           kf.number("settle_s", 10.0, non_negative=True),
+                           kf.number("rotor_speed_margin_pct", DEFAULT_ROTOR_SPEED_MARGIN_PCT, non_negative=True),
+                           kf.number("tilt_margin_deg", DEFAULT_TILT_MARGIN_DEG, non_negative=True),
+                           kf.number("turbulence_sigmas", DEFAULT_TURBULENCE_SIGMAS, non_negative=True))
     kf.done()
     settled = entry.climb_s + entry.blend_s + checks.settle_s
     duration = top.number("duration_s", max(DEFAULT_DURATION_S, math.ceil(settled + MIN_SETTLED_WINDOW_S)), positive=True)

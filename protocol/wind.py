@@ -141,6 +141,13 @@ def wind_vector_e(speed_m_s: float, from_deg: float) -> np.ndarray:
     return np.array([-speed_m_s * math.cos(a), speed_m_s * math.sin(a), 0.0])
 
 
+def turbulence_axes_e(from_deg: float) -> np.ndarray:
+    """(3, 3): the turbulence's u, v, w axes (along the mean wind, across it to its left, up) as
+    columns in the earth frame: what turns a turbulence in (u, v, w) into the earth frame."""
+    along = wind_vector_e(1.0, from_deg)
+    return np.column_stack([along, [-along[1], along[0], 0.0], [0.0, 0.0, 1.0]])
+
+
 def turbulence_sigma_w(level: str | float, what: str = "turbulence") -> float:
     """sigma_w [m/s] of a named level (none, light, moderate, severe) or of a number in m/s."""
     if isinstance(level, str):
@@ -232,9 +239,7 @@ class Dryden:
         Q = Phi @ E[:n, n:]
         w, V = np.linalg.eigh(0.5 * (Q + Q.T))
         L = V * np.sqrt(np.clip(w, 0.0, None))  # L L^T = Q
-        along = wind_vector_e(1.0, wind.from_deg)
-        axes = np.column_stack([along, [-along[1], along[0], 0.0], [0.0, 0.0, 1.0]])  # along, left, up
-        return cls(Phi, L, C_uvw, axes @ C_uvw, P, T)
+        return cls(Phi, L, C_uvw, turbulence_axes_e(wind.from_deg) @ C_uvw, P, T)
 
     def correlation(self, lag_steps: int) -> np.ndarray:
         """E[c(t) c(t + lag)] of u, v and w of this discrete process, exactly (from P and Phi)."""

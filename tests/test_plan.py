@@ -119,7 +119,7 @@ def test_actuator_demand_of_a_still_level_formation_is_hover(paper_spec):
 def test_check_refuses_a_formation_past_the_motor_limit_or_the_servo_range(paper_spec, field, limit, refused):
     plan = plan_from_dict(spec_with(paper_spec, ("airframe", field), float(limit)), "my.toml")
     if refused is None:
-        plan.check(horizon_s=20)
+        plan.check_formation(horizon_s=20)  # (the margins plan check keeps for the feedback: test_air_margin)
     else:
         with pytest.raises(PlanError, match="my.toml: formation cannot be flown: " + refused):
             plan.check(horizon_s=20)
