@@ -237,7 +237,7 @@ class ControlLoop:
         if f.phase == Phase.LANDING:
             f.landing_tick(t.t_p, t.xhat)
         elif f.has_path(a.plans.plan.schedule.at(t.t_p), f.presence()):
-            f.rejoin(t.t_plan, a.rejoin_source())
+            f.rejoin(t.t_plan, f.rejoin_source())
         t.v = pinned_input(a.design, (t.xhat - t.h)[None, :], t.x0, t.gamma[None, :])[0]
 
     # -- 3. wait --------------------------------------------------------------------------------------

@@ -193,10 +193,9 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     plan, timeout_s = 7, 0.2
     estimates = {j: Neighbour() for j in (2, 3, 4)}
     bus = SimpleNamespace(alive={1, 4}, estimates=estimates, status_of=lambda j, plans: None)
-    agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
-                            fc=SimpleNamespace(now_unix=lambda: 1000.0),
-                            params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
-    flight = Flight(agent)
+    flight = Flight(1, SimpleNamespace(now_unix=lambda: 1000.0), None, SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}),
+                    None, None, autostart=False, on_phase=None, controller_reset=None, lead_s=None, entry=None)
+    flight.opened(bus, frozenset({2, 3}), (plan,))
     flight.t_p = 50.0
     for j, t_plan in ((2, 50.0 - 0.01), (3, 50.0 - 1.0)):
         nb = estimates[j]
