@@ -146,6 +146,28 @@ class Agent:
     def plan_time(self, boot_us: int) -> float:
         return self.plans.plan_time(boot_us)
 
+    @property
+    def lockstep(self) -> bool:
+        """Its flight controller is a simulator in lockstep (every state it sends is answered)."""
+        return self.fc.answers.lockstep
+
+    @property
+    def nb_wait_s(self) -> float:
+        """The longest wait for the neighbours' estimates [s, wall] (``NB_WAIT_MS``; not in lockstep)."""
+        return self.params.values["NB_WAIT_MS"] / 1000.0
+
+    def topology_at(self, t_plan: float):
+        """The graph of the plan in force at plan time ``t_plan`` [s]."""
+        return self.plans.plan.schedule.at(t_plan)
+
+    def publish_estimate(self, xi: np.ndarray, t_p: float, status) -> None:
+        """This agent's xi for plan time ``t_p`` [s] on the bus, with its status."""
+        self.bus.publish_estimate(self.id, xi, t_p, status)
+
+    def estimates_in(self, agents: list[int], t_p: float) -> bool:
+        """Whether the estimates of ``agents`` for plan time ``t_p`` [s] (within half a period) are in."""
+        return self.bus.ready(agents, t_p, 0.5 * self.dt_s, self.plans_on_bus)
+
     def controller_reset(self, x: np.ndarray) -> None:
         self.bank.reset(x[None, :], rows=np.array([self.row]))
 
@@ -193,7 +215,7 @@ class Agent:
             self.bus.leave(self.id)
         self.bus = self.host.bus(self.opts.swarm or plan.name, plan.n_agents)
         self.bus.join(self.id, self.plans.mission.plan_id, self.listen_to)
-        if self.fc.answers.lockstep:
+        if self.lockstep:
             self.bus.reliable_estimates()
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.design = plan.design
@@ -294,7 +316,7 @@ class Agent:
                                              self.say)
         if rate_hz != self.rate_hz:
             self.set_rate(rate_hz)
-        if self.bus is not None and self.fc.answers.lockstep:
+        if self.bus is not None and self.lockstep:
             self.bus.reliable_estimates()
 
     async def _mission(self) -> None:
@@ -326,7 +348,7 @@ class Agent:
         while True:
             self.watch_fc()
             self.tell_others()
-            if self.bus is not None and self.fc.answers.lockstep and self.id in self.bus.members:
+            if self.bus is not None and self.lockstep and self.id in self.bus.members:
                 self.bus.republish(self.id, REPUBLISH_AFTER_S)
             hb = self.heartbeat()
             for link in (self.fc.link, self.gcs.link):

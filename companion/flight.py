@@ -165,7 +165,7 @@ class Flight:
                 self.say(f"plan {self.plans.plan.name} starts at {m.start_unix_s:.1f}")
                 if fc.now_unix() > m.start_unix_s - ARM_LEAD_S:
                     self.say(f"ready {fc.now_unix() - m.start_unix_s + ARM_LEAD_S:.1f} s late for the start",
-                          mavlink.MAV_SEVERITY_WARNING)
+                             mavlink.MAV_SEVERITY_WARNING)
                 await fc.clock.until(m.start_unix_s - ARM_LEAD_S)
                 await self.arm()
             await fc.clock.until(m.start_unix_s)
