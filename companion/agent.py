@@ -12,6 +12,9 @@ and its neighbours, made of rooms that each have one job:
 while the process (``host.Host``) gives every agent its share of the Zenoh bus, a row of the
 controller of its plan's design, and the control loop (``loop.ControlLoop``) that ticks it.
 
+The agent builds each room from the rooms and callbacks it uses, passed to its constructor; no room
+is handed the agent, and a room changes another only through that room's methods.
+
 Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time, and
 every wait and timeout of the mission runs on that clock (``clock.py``), so the same code flies on a
 simulator's clock in lockstep.
