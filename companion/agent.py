@@ -12,6 +12,9 @@ and its neighbours, made of rooms that each have one job:
 while the process (``host.Host``) gives every agent its share of the Zenoh bus, a row of the
 controller of its plan's design, and the control loop (``loop.ControlLoop``) that ticks it.
 
+The agent builds each room from the rooms and callbacks it uses, passed to its constructor; no room
+is handed the agent, and a room changes another only through that room's methods.
+
 Plan time is the flight controller's clock (SYSTEM_TIME) minus the swarm's common start time, and
 every wait and timeout of the mission runs on that clock (``clock.py``), so the same code flies on a
 simulator's clock in lockstep.
@@ -36,7 +39,6 @@ import numpy as np
 
 from triswarm.protocol import model
 from triswarm.protocol.airframe import TABLE_1
-from triswarm.protocol.formation import RelativeTo
 from triswarm.protocol.mavlink import mavlink
 from triswarm.protocol.stall import Stalls
 
@@ -93,24 +95,26 @@ class Agent:
             key = None if opts.signing_key is None else read_signing_key(opts.signing_key)
         except ValueError as exc:  # (one sentence: the file and what is wrong with it)
             raise StartupError(str(exc)) from None
-        self.store = StateStore(opts.state_dir, lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING))
+        self.store = StateStore(opts.state_dir, self.warn)
         self.rate_hz = opts.rate_hz
         """The control rate [Hz]: the rate asked for, or the one the attitude comes at."""
         self.params = Params(opts.rate_hz)
         self.health = LoopHealth(1.0 / opts.rate_hz)
-        self.fc = FlightController(self.id, opts.fc, self.log, self._fc_state, opts.fc_profile, home_of(opts))
-        self.fc.link.after_read = lambda: host.loop_ctl.due(self)
-        self.gcs = GroundStation(self, opts.gcs, key)
-        for link in (self.fc.link, self.gcs.link):  # (a serial port that failed, and is back)
-            link.on_event = lambda text: self.say(text, mavlink.MAV_SEVERITY_WARNING)
-        self.plans = Plans(self.id, self.store, self.fc.clock, self.log, self._reopen, self._schedule,
-                           lambda: self.flight.in_flight)
-        self.plans.clock_check = self.start_clock_problem
+        self.fc = FlightController(self.id, opts.fc, self.log, lambda: self.flight.check_release(), opts.fc_profile,
+                                   home_of(opts), after_read=lambda: host.loop_ctl.due(self), on_link_event=self.warn)
         self.kernel_clock = kernel_clock
         """The kernel's word on the wall clock (a test puts its own)."""
+        self.plans = Plans(self.id, self.store, self.fc.clock, self.log, self._reopen, self._schedule,
+                           lambda: self.flight.in_flight, clock_check=self.start_clock_problem)
         self.plan_server = PlanServer(lambda items: self.plans.receive(items, self.loop), self._clear_plans,
                                       self.plans.held_items, self.say)
-        self.flight = Flight(self)
+        self.flight = Flight(self.id, self.fc, self.plans, self.params, self.say, self.log, autostart=opts.autostart,
+                             on_phase=self.publish_status, controller_reset=self.controller_reset,
+                             lead_s=lambda: self.lead_s, entry=host.entry)
+        self.gcs = GroundStation(self.id, opts.gcs, key, fc=self.fc, params=self.params, plans=self.plans,
+                                 plan_server=self.plan_server, ask_to_land=self.flight.ask_to_land,
+                                 heartbeat=self.heartbeat, store=self.store, say=self.say, log=self.log,
+                                 frames_per_s=opts.gcs_frames_per_s, on_link_event=self.warn)
         omega, alpha = model.hover_trim(TABLE_1)  # until a plan names the airframe
         self.idle = (omega * IDLE_FRACTION, alpha)
         self.bus = None
@@ -122,8 +126,6 @@ class Agent:
         self.in_weights: dict[str, list[tuple[int, float]]] = {}
         self.plans_on_bus: tuple[int, ...] = ()
         self.errors = 0
-        self.fc_heard_s: float | None = None
-        """When the flight controller was last heard [s, time.monotonic] (``GroundStation.from_fc``)."""
         self.fc_lost_since: float | None = None
         """Since when the flight controller is lost [s, time.monotonic] (None: it is not)."""
         self._fc_back: asyncio.Task | None = None
@@ -144,24 +146,43 @@ class Agent:
     def dt_s(self) -> float:
         return self.bank.dt_s
 
-    @property
-    def plan_rfl(self):
-        return self.plans.plan.rfl
-
     def plan_time(self, boot_us: int) -> float:
-        return self.fc.clock.plan_time(boot_us, self.plans.mission.start_unix_s)
+        return self.plans.plan_time(boot_us)
+
+    @property
+    def lockstep(self) -> bool:
+        """Its flight controller is a simulator in lockstep (every state it sends is answered)."""
+        return self.fc.answers.lockstep
+
+    @property
+    def nb_wait_s(self) -> float:
+        """The longest wait for the neighbours' estimates [s, wall] (``NB_WAIT_MS``; not in lockstep)."""
+        return self.params.values["NB_WAIT_MS"] / 1000.0
+
+    def topology_at(self, t_plan: float):
+        """The graph of the plan in force at plan time ``t_plan`` [s]."""
+        return self.plans.plan.schedule.at(t_plan)
+
+    def publish_estimate(self, xi: np.ndarray, t_p: float, status) -> None:
+        """This agent's xi for plan time ``t_p`` [s] on the bus, with its status."""
+        self.bus.publish_estimate(self.id, xi, t_p, status)
+
+    def estimates_in(self, agents: list[int], t_p: float) -> bool:
+        """Whether the estimates of ``agents`` for plan time ``t_p`` [s] (within half a period) are in."""
+        return self.bus.ready(agents, t_p, 0.5 * self.dt_s, self.plans_on_bus)
 
     def controller_reset(self, x: np.ndarray) -> None:
         self.bank.reset(x[None, :], rows=np.array([self.row]))
-
-    def rejoin_source(self):
-        return RelativeTo(self.flight.hold, self.plans.leader)
 
     def say(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """To the log and the ground station, as this companion."""
         text = f"companion {self.id}: {text}"
         self.log.info(text)
         self.gcs.statustext(text, severity)
+
+    def warn(self, text: str) -> None:
+        """``say`` as a warning (a state file that cannot be written, a serial port that failed and is back)."""
+        self.say(text, mavlink.MAV_SEVERITY_WARNING)
 
     def tick_failed(self) -> None:
         """A tick that raised: it costs one command, never the loop."""
@@ -183,9 +204,6 @@ class Agent:
             f = self.flight
             self.bus.publish_status(self.id, PHASE_STATUS[f.phase], f.reason, f.since)
 
-    def _fc_state(self) -> None:
-        self.flight.check_release()
-
     # -- a plan in force ------------------------------------------------------------------------
 
     def open_plan(self) -> None:
@@ -200,7 +218,7 @@ class Agent:
             self.bus.leave(self.id)
         self.bus = self.host.bus(self.opts.swarm or plan.name, plan.n_agents)
         self.bus.join(self.id, self.plans.mission.plan_id, self.listen_to)
-        if self.fc.answers.lockstep:
+        if self.lockstep:
             self.bus.reliable_estimates()
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.design = plan.design
@@ -208,7 +226,7 @@ class Agent:
         self.params.declare("COUPLING_C", plan.design.c)
         omega, alpha = model.hover_trim(plan.airframe)
         self.idle = (omega * IDLE_FRACTION, alpha)
-        self.flight.opened()
+        self.flight.opened(self.bus, self.listen_to, self.plans_on_bus)
         self.publish_status()
 
     def set_rate(self, rate_hz: float) -> None:
@@ -234,7 +252,7 @@ class Agent:
         self.plans_on_bus = self.bus.plans_of(self.id)
         self.params.declare("COUPLING_C", plan.design.c)
         self.say(f"plan {plan.name} {pid:08x} in force")
-        self.flight.switched(t_plan)
+        self.flight.switched(t_plan, self.plans_on_bus)
 
     def _clear_plans(self) -> tuple[int, str]:
         code, reason = self.plans.clear()
@@ -279,7 +297,7 @@ class Agent:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self.gcs.keep_signing_streams()
-            if self.bus is not None and "session" in self.bus.__dict__:
+            if self.bus is not None and self.bus.is_open:
                 self.bus.leave(self.id)
         return self.stats()
 
@@ -301,7 +319,7 @@ class Agent:
                                              self.say)
         if rate_hz != self.rate_hz:
             self.set_rate(rate_hz)
-        if self.bus is not None and self.fc.answers.lockstep:
+        if self.bus is not None and self.lockstep:
             self.bus.reliable_estimates()
 
     async def _mission(self) -> None:
@@ -320,9 +338,7 @@ class Agent:
             if problem:
                 self.say(f"plan start refused: {problem}", mavlink.MAV_SEVERITY_ERROR)
                 return
-            m.start_unix_s = self.opts.start_at or default_start_time(now)
-            m.phase = "scheduled"
-            self.plans.save()
+            self.plans.schedule_at(self.opts.start_at or default_start_time(now))
         if m.phase == "scheduled":
             self.flight.schedule()
 
@@ -335,7 +351,7 @@ class Agent:
         while True:
             self.watch_fc()
             self.tell_others()
-            if self.bus is not None and self.fc.answers.lockstep and self.id in self.bus.members:
+            if self.bus is not None and self.lockstep and self.id in self.bus.members:
                 self.bus.republish(self.id, REPUBLISH_AFTER_S)
             hb = self.heartbeat()
             for link in (self.fc.link, self.gcs.link):
@@ -367,7 +383,8 @@ class Agent:
         table = self.bus.estimates
         ages = {j: (now - table[j].stamp_s if table[j].heard else math.inf) for j in sorted(self.listen_to)}
         report = self.health.report(ages)
-        silent = None if self.fc_heard_s is None else round(time.monotonic() - self.fc_heard_s, 3)
+        heard = self.fc.heard_s
+        silent = None if heard is None else round(time.monotonic() - heard, 3)
         report.update(agent=self.id, phase=self.flight.phase.value, alive=sorted(self.bus.alive),
                       counters=self.bus.counts(), links=self.link_counters(), t=now,
                       fc_lost=self.fc_lost_since is not None, fc_silent_s=silent,
@@ -382,7 +399,7 @@ class Agent:
     def watch_fc(self) -> None:
         """Once a second: a flight controller set up and silent for FC_SILENT_S (while this process
         ran: ``Stalls``) is lost; a lost one heard again is taken back."""
-        fc, heard = self.fc, self.fc_heard_s
+        fc, heard = self.fc, self.fc.heard_s
         now = time.monotonic()
         self.stalls.look(now)
         if heard is None:

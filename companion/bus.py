@@ -281,6 +281,8 @@ class Bus:
         self.waiting = False
         """Set by the loop while an agent waits for estimates: the callbacks then ring the doorbell."""
         self._subscribed: dict[int, object] = {}
+        self.session: zenoh.Session | None = None
+        """Its session, from ``open`` until ``close``."""
 
     # -- session ------------------------------------------------------------------------------
 
@@ -306,7 +308,7 @@ class Bus:
 
     def close(self) -> None:
         """Undeclare everything and close the session (again: nothing)."""
-        session = self.__dict__.pop("session", None)
+        session, self.session = self.session, None
         if session is None:
             return
         for agent in list(self.members):
@@ -321,6 +323,10 @@ class Bus:
             pass
         self._doorbell.close()
         self._bell.close()
+
+    @property
+    def is_open(self) -> bool:
+        return self.session is not None
 
     # -- members ------------------------------------------------------------------------------
 

@@ -74,6 +74,11 @@ class FcClock:
         self.offset_us += max(-room, min(room, diff))
         self._set_at_ms = boot_ms
 
+    def set_steady(self, in_flight: bool) -> None:
+        """In flight plan time runs on the boot clock (``set_offset``); on the ground SYSTEM_TIME is
+        taken as it comes."""
+        self.steady = in_flight
+
     def forget(self) -> None:
         """A new flight controller (a reboot, a clock that broke): its clock is learnt again from
         its SYSTEM_TIME; until then it is not known."""

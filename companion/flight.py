@@ -65,14 +65,27 @@ LAND_DISARM_RETRY_S = 1.0
 
 
 class Flight:
-    """``agent``: the ``Agent`` whose flight this is (its flight controller, plans, bus, controller row,
-    parameters and voice)."""
+    """Agent ``agent_id``'s flight. ``fc``: its flight controller (``FlightController``); ``plans``: its
+    plans (``Plans``); ``params``: the companion's parameters (``Params``); ``say(text, severity)``
+    and ``log``: its voice; ``autostart``: it arms itself before the start time; ``on_phase()``: the
+    phase changed (the agent publishes it); ``controller_reset(x)``: its controller row starts from
+    the measured state x; ``lead_s()``: how far [s] the estimates run ahead of a sample's time;
+    ``entry(plan, formation, t0_s)``: the entry the agents of the process share (``Host.entry``).
+    The bus it counts its neighbours on comes with each plan opened (``opened``)."""
 
-    def __init__(self, agent) -> None:
-        self.a = agent
+    def __init__(self, agent_id: int, fc, plans, params, say, log, *, autostart: bool, on_phase, controller_reset,
+                 lead_s, entry) -> None:
+        self.id, self.fc, self.plans, self.params, self.say, self.log = agent_id, fc, plans, params, say, log
+        self.autostart = autostart
+        self.on_phase, self.controller_reset, self.lead_s, self.entry = on_phase, controller_reset, lead_s, entry
+        self.bus = None
+        self.listen_to: frozenset[int] = frozenset()
+        """The agents whose estimates this one gets."""
+        self.plans_on_bus: tuple[int, ...] = ()
+        """The plan ids that count on the bus (``Bus.plans_of``)."""
         self.phase = Phase.IDLE
         self.reason = ""
-        self.since = agent.fc.now_unix()
+        self.since = fc.now_unix()
         """Why and since when [Unix s, the flight controller's clock] the phase is what it is."""
         self.flying_since = -math.inf
         self.tracking: Formation | None = None
@@ -105,24 +118,30 @@ class Flight:
     def set_phase(self, phase: Phase, reason: str) -> None:
         if phase == self.phase:
             return
-        now = self.a.fc.now_unix()
+        now = self.fc.now_unix()
         if phase == Phase.FLYING and self.phase in (Phase.IDLE, Phase.SCHEDULED):
             self.flying_since = now
         self.phase, self.reason, self.since = phase, reason, now
-        self.a.fc.clock.steady = self.in_flight  # (in flight, plan time runs on the boot clock)
-        self.a.publish_status()
+        self.fc.clock.set_steady(self.in_flight)
+        self.on_phase()
         if phase == Phase.HOLDING:
-            self.a.say(f"holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
+            self.say(f"holding, {reason}", mavlink.MAV_SEVERITY_WARNING)
         elif phase == Phase.FLYING:
-            self.a.say("in formation")
+            self.say("in formation")
 
     def mine(self, formation: Formation) -> Row:
         """This agent's row of a swarm's formation: the references it flies (entry, rejoin, hold)
         are one-agent formations."""
-        return Row(formation, self.a.id - 1)
+        return Row(formation, self.id - 1)
 
-    def opened(self) -> None:
-        """A plan was opened (a new bus membership and controller row): forget the old one's caches."""
+    def rejoin_source(self) -> Formation:
+        """What a rejoin from the hold starts from: the hold, about the plan's leader."""
+        return RelativeTo(self.hold, self.plans.leader)
+
+    def opened(self, bus, listen_to: frozenset[int], plans_on_bus: tuple[int, ...]) -> None:
+        """A plan was opened: this agent on ``bus`` (listening to ``listen_to``, counting the plans
+        ``plans_on_bus``), with a new controller row. The old one's caches are forgotten."""
+        self.bus, self.listen_to, self.plans_on_bus = bus, listen_to, plans_on_bus
         self._presence_base = None
         self._paths = {}
 
@@ -141,46 +160,46 @@ class Flight:
         return task
 
     async def _start_when_due(self) -> None:
-        a, fc, m = self.a, self.a.fc, self.a.plans.mission
+        fc, m = self.fc, self.plans.mission
         try:
             while not (fc.clock.known and fc.ready):  # the flight controller's set-up is still running
                 await asyncio.sleep(0.05)
-            if a.opts.autostart:  # (a start command has its answer already)
-                a.say(f"plan {a.plans.plan.name} starts at {m.start_unix_s:.1f}")
+            if self.autostart:  # (a start command has its answer already)
+                self.say(f"plan {self.plans.plan.name} starts at {m.start_unix_s:.1f}")
                 if fc.now_unix() > m.start_unix_s - ARM_LEAD_S:
-                    a.say(f"ready {fc.now_unix() - m.start_unix_s + ARM_LEAD_S:.1f} s late for the start",
-                          mavlink.MAV_SEVERITY_WARNING)
+                    self.say(f"ready {fc.now_unix() - m.start_unix_s + ARM_LEAD_S:.1f} s late for the start",
+                             mavlink.MAV_SEVERITY_WARNING)
                 await fc.clock.until(m.start_unix_s - ARM_LEAD_S)
                 await self.arm()
             await fc.clock.until(m.start_unix_s)
             if not fc.armed:
-                a.say("start time reached; waiting to be armed")
+                self.say("start time reached; waiting to be armed")
                 while not fc.armed:
                     await asyncio.sleep(0.05)
             if fc.landed:  # (some flight controllers take off themselves before they hand over)
-                await fc.launch(a.plans.plan.entry.climb_m, a.say)
+                await fc.launch(self.plans.plan.entry.climb_m, self.say)
             if not fc.in_control:  # e.g. hovering after the operator's takeoff
                 await fc.take_control()
             while self.state_now() is None:  # (a position to start from)
                 await asyncio.sleep(0.05)
-            self.begin_entry(max(0.0, a.plan_time(fc.last_sample.boot_us)))
+            self.begin_entry(max(0.0, self.plans.plan_time(fc.last_sample.boot_us)))
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # the plan does not start; the companion keeps routing and reporting
-            a.log.exception("plan start failed")
+            self.log.exception("plan start failed")
             self.set_phase(Phase.IDLE, "")
-            a.say(f"plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
+            self.say(f"plan not started: {exc}", mavlink.MAV_SEVERITY_ERROR)
 
     async def arm(self) -> None:
-        result = await self.a.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        result = await self.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         if result != mavlink.MAV_RESULT_ACCEPTED:
-            self.a.say(f"the flight controller refused to arm ({result})")
+            self.say(f"the flight controller refused to arm ({result})")
             raise RuntimeError("arming refused")
 
     def state_now(self) -> np.ndarray | None:
         """The measured state x of (28) from the newest sample, or None before one with a position
         came (body rates that did not come count as zero)."""
-        s = self.a.fc.last_sample
+        s = self.fc.last_sample
         if s is None or not all(math.isfinite(c) for c in s.position_e_m + s.velocity_e_m_s):
             return None
         eta = np.array(s.eta_rad)
@@ -191,53 +210,50 @@ class Flight:
     def begin_entry(self, t0_s: float) -> None:
         """Take off from where the drone rests and enter the formation (the plan's entry) from plan
         time ``t0_s``."""
-        a = self.a
         x = self.state_now()
-        a.controller_reset(x)
+        self.controller_reset(x)
         self.ground_z_m = float(x[11])
-        m = a.plans.mission
-        m.phase = "flying"
-        a.plans.save()
-        self.flying = self.tracking = a.host.entry(a.plans.plan, a.plans.formation, t0_s).join(self.a.id - 1, x[9:12])
+        self.plans.set_phase("flying")
+        self.flying = self.tracking = self.entry(self.plans.plan, self.plans.formation, t0_s).join(self.id - 1, x[9:12])
         self.set_phase(Phase.FLYING, "")
 
     async def resume(self) -> None:
         """After a restart (of the companion, or of the flight controller): join the formation again
         from wherever the vehicle is; a plan whose start is still ahead on the flight controller's
         clock is scheduled again."""
-        a, fc = self.a, self.a.fc
-        if a.plans.mission.start_unix_s > fc.now_unix():
+        fc, plans = self.fc, self.plans
+        if plans.mission.start_unix_s > fc.now_unix():
             self.schedule()
             return
         while self.state_now() is None:
             await asyncio.sleep(0.05)
-        if a.plans.mission.phase == "landing":  # (a landing goes on; one that is over ends)
+        if plans.mission.phase == "landing":  # (a landing goes on; one that is over ends)
             if not fc.armed or fc.landed:
                 self.release("on the ground after the landing")
                 return
             x = self.state_now()
-            a.controller_reset(x)
-            self.start_landing(a.plan_time(fc.last_sample.boot_us), a.plan_rfl.phi_r(x[None, :])[0])
+            self.controller_reset(x)
+            self.start_landing(plans.plan_time(fc.last_sample.boot_us), plans.plan.rfl.phi_r(x[None, :])[0])
             return
         if not fc.armed or fc.landed:
             if not fc.armed:
                 await self.arm()
-            await fc.launch(a.plans.plan.entry.climb_m, a.say)
+            await fc.launch(plans.plan.entry.climb_m, self.say)
             if not fc.in_control:
                 await fc.take_control()
-            self.begin_entry(a.plan_time(fc.last_sample.boot_us) + 1.0)
+            self.begin_entry(plans.plan_time(fc.last_sample.boot_us) + 1.0)
             return
         x = self.state_now()
-        a.controller_reset(x)
-        t_plan = a.plan_time(fc.last_sample.boot_us)
-        self.flying = self.mine(a.plans.formation)
-        self.hold = braking(t_plan + a.lead_s, a.plan_rfl.phi_r(x[None, :])[0])
-        self.rejoin(t_plan, RelativeTo(self.hold, a.plans.leader))
+        self.controller_reset(x)
+        t_plan = plans.plan_time(fc.last_sample.boot_us)
+        self.flying = self.mine(plans.formation)
+        self.hold = braking(t_plan + self.lead_s(), plans.plan.rfl.phi_r(x[None, :])[0])
+        self.rejoin(t_plan, self.rejoin_source())
 
     def check_release(self) -> None:
         """The flight controller took the vehicle back (the operator's land or hold, a disarm):
         this flight of the plan is over. (A failsafe hold, which commands win back, is not.)"""
-        fc = self.a.fc
+        fc = self.fc
         if not self.in_flight:
             return
         if not fc.armed:
@@ -246,21 +262,20 @@ class Flight:
             self.release(reason)
 
     def release(self, reason: str) -> None:
-        landed = self.phase == Phase.LANDING or self.a.plans.mission.phase == "landing"
+        landed = self.phase == Phase.LANDING or self.plans.mission.phase == "landing"
         self.land_asked = False
-        self.a.plans.mission.phase = "done"
-        self.a.plans.save()
+        self.plans.set_phase("done")
         self.set_phase(Phase.IDLE, "")
-        self.a.say(f"formation flight over: {reason}", mavlink.MAV_SEVERITY_INFO if landed else mavlink.MAV_SEVERITY_WARNING)
+        self.say(f"formation flight over: {reason}", mavlink.MAV_SEVERITY_INFO if landed else mavlink.MAV_SEVERITY_WARNING)
 
     # -- hold and rejoin ------------------------------------------------------------------------
 
     def start_hold(self, t_plan: float, xhat: np.ndarray, reason: str) -> None:
         """xhat: the estimate x_r predicted to t_plan + lead ([lambda_dot, eta_dot, eta, lambda])."""
-        self.hold = braking(t_plan + self.a.lead_s, xhat)
-        n = self.a.plans.plan.n_agents
+        self.hold = braking(t_plan + self.lead_s(), xhat)
+        n = self.plans.plan.n_agents
         absent = {j: self.why_absent(j) for j in range(1, n + 1) if not self.usable(j)}
-        self.a.log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
+        self.log.info(f"hold at t_plan {t_plan:.3f}: {reason}; absent {absent}")
         self.set_phase(Phase.HOLDING, reason)
 
     # -- landing ----------------------------------------------------------------------------------
@@ -280,14 +295,13 @@ class Flight:
         """Out of the formation: brake and descend to LAND_SINK_M below the ground at a mean
         LAND_SPEED, from xhat (the estimate x_r predicted to t_plan + lead)."""
         self.land_asked = False
-        self.a.plans.mission.phase = "landing"
-        self.a.plans.save()
-        t0 = t_plan + self.a.lead_s
-        self.hold, self.touchdown_s = landing(t0, xhat, self.ground_z_m - LAND_SINK_M, self.a.params.values["LAND_SPEED"])
-        self.a.log.info(f"landing at t_plan {t_plan:.3f} from {xhat[11] - self.ground_z_m:.2f} m above the ground, "
+        self.plans.set_phase("landing")
+        t0 = t_plan + self.lead_s()
+        self.hold, self.touchdown_s = landing(t0, xhat, self.ground_z_m - LAND_SINK_M, self.params.values["LAND_SPEED"])
+        self.log.info(f"landing at t_plan {t_plan:.3f} from {xhat[11] - self.ground_z_m:.2f} m above the ground, "
                         f"down at t_plan {self.touchdown_s:.1f}")
         self.set_phase(Phase.LANDING, "asked to land")
-        self.a.say(f"landing: down in {self.touchdown_s - t0:.0f} s")
+        self.say(f"landing: down in {self.touchdown_s - t0:.0f} s")
 
     def landing_tick(self, t_p: float, xhat: np.ndarray) -> None:
         """Landing, at the instant t_p [plan s] the estimate xhat is of: once the descent is over and
@@ -296,24 +310,24 @@ class Flight:
         if t_p < max(self.touchdown_s, self._disarm_again_s) or self._disarm_task is not None:
             return
         self._disarm_again_s = t_p + LAND_DISARM_RETRY_S
-        if self.a.fc.landed:
+        if self.fc.landed:
             self._disarm_task = asyncio.ensure_future(self._disarm(force=False))
         elif t_p >= self.touchdown_s + LAND_DETECT_S and xhat[11] - self.ground_z_m < LAND_FORCE_BELOW_M:
-            self.a.say(f"the flight controller has not detected the landing {LAND_DETECT_S:g} s after the descent: "
+            self.say(f"the flight controller has not detected the landing {LAND_DETECT_S:g} s after the descent: "
                        "disarming by force", mavlink.MAV_SEVERITY_WARNING)
             self._disarm_task = asyncio.ensure_future(self._disarm(force=True))
 
     async def _disarm(self, force: bool) -> None:
         try:
-            result = await self.a.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 21196.0 if force else 0.0)
+            result = await self.fc.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 21196.0 if force else 0.0)
             if result == mavlink.MAV_RESULT_ACCEPTED:
                 if self.phase == Phase.LANDING:
                     self.release("landed and disarmed")
             else:
-                self.a.say(f"the flight controller refused to disarm after the landing ({result}): asking again in "
+                self.say(f"the flight controller refused to disarm after the landing ({result}): asking again in "
                            f"{LAND_DISARM_RETRY_S:g} s", mavlink.MAV_SEVERITY_WARNING)
         except TimeoutError:
-            self.a.say(f"no answer from the flight controller to the disarm after the landing: asking again in "
+            self.say(f"no answer from the flight controller to the disarm after the landing: asking again in "
                        f"{LAND_DISARM_RETRY_S:g} s", mavlink.MAV_SEVERITY_WARNING)
         finally:
             self._disarm_task = None
@@ -325,21 +339,23 @@ class Flight:
         plan before): the reference starts exactly where (and as fast as) the drone is meant to be,
         and its distance to the formation decays over REJOIN_S seconds, longer if the way is long
         (peak acceleration REJOIN_ACCEL)."""
-        values = self.a.params.values
-        t0 = t_plan + self.a.lead_s  # references are evaluated at the time the estimates refer to
-        target = self.flying or self.mine(self.a.plans.formation)  # the entry, if it is not over
+        values = self.params.values
+        t0 = t_plan + self.lead_s()  # references are evaluated at the time the estimates refer to
+        target = self.flying or self.mine(self.plans.formation)  # the entry, if it is not over
         rejoin = Rejoin(source, target, t0, values["REJOIN_S"])
         dp, dv = (float(np.linalg.norm(e[0])) for e in rejoin.initial_error)
         duration_s = rejoin_duration(dp, dv, values["REJOIN_ACCEL"], values["REJOIN_S"])
         if duration_s > rejoin.duration_s:
             rejoin = Rejoin(source, target, t0, duration_s)
-        self.a.log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
+        self.log.info(f"rejoin at t_plan {t_plan:.3f}: {dp:.2f} m and {dv:.2f} m/s away, over {rejoin.duration_s:.1f} s")
         self.tracking = rejoin
         self.set_phase(Phase.FLYING, "")
 
-    def switched(self, t_plan: float) -> None:
-        """A plan was put in force in flight: its formation from now, reached as a rejoin does."""
-        self.flying = self.mine(self.a.plans.formation)
+    def switched(self, t_plan: float, plans_on_bus: tuple[int, ...]) -> None:
+        """A plan was put in force in flight (the plans that count on the bus now: ``plans_on_bus``):
+        its formation from now, reached as a rejoin does."""
+        self.plans_on_bus = plans_on_bus
+        self.flying = self.mine(self.plans.formation)
         if self.phase == Phase.FLYING:
             self.rejoin(t_plan, self.tracking)
 
@@ -348,14 +364,13 @@ class Flight:
     def presence(self) -> tuple[bool, ...]:
         """Which agents count now (``usable``), every one. Of the agents this one does not listen
         to, only liveliness, status and the start decide: that part is kept until one changes."""
-        a = self.a
-        starting = a.fc.now_unix() - self.flying_since < START_GRACE_S
-        key = (a.bus.changes, starting, self._kept_alive())
+        starting = self.fc.now_unix() - self.flying_since < START_GRACE_S
+        key = (self.bus.changes, starting, self._kept_alive())
         if self._presence_base is None or self._presence_base[0] != key:
-            n = self.a.plans.plan.n_agents
+            n = self.plans.plan.n_agents
             self._presence_base = (key, [self.usable(j) for j in range(1, n + 1)])
         present = list(self._presence_base[1])
-        for j in self.a.listen_to:  # (their estimates' freshness changes every tick)
+        for j in self.listen_to:  # (their estimates' freshness changes every tick)
             present[j - 1] = self.usable(j)
         return tuple(present)
 
@@ -365,15 +380,14 @@ class Flight:
         key = (topo.name, present)
         found = self._paths.get(key)
         if found is None:
-            found = self._paths[key] = bool(topo.reachable_from_leader(np.array(present))[self.a.id - 1])
+            found = self._paths[key] = bool(topo.reachable_from_leader(np.array(present))[self.id - 1])
         return found
 
     def _kept_alive(self) -> frozenset[int]:
         """The agents whose liveliness token went but that still count as alive (lockstep's grace,
         ``liveliness.py``)."""
-        a = self.a
-        return self.liveliness.update(a.bus.alive, a.bus.changes, self.t_p,
-                                      LOCKSTEP_GRACE_S if a.fc.answers.lockstep else 0.0)
+        return self.liveliness.update(self.bus.alive, self.bus.changes, self.t_p,
+                                      LOCKSTEP_GRACE_S if self.fc.answers.lockstep else 0.0)
 
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
@@ -381,19 +395,18 @@ class Flight:
         without its liveliness token: under loss, Zenoh has been seen to lose a token's declaration
         for a whole flight while the estimates flowed (the estimates are the better sign of life:
         they stop within NB_TIMEOUT_S when it dies)."""
-        a = self.a
-        if j == a.id:
+        if j == self.id:
             return True
-        bus = a.bus
+        bus = self.bus
         alive = j in bus.alive or j in self._kept_alive()
-        if not alive and (j not in a.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
+        if not alive and (j not in self.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
-        starting = a.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
-        plans = a.plans_on_bus
+        starting = self.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
+        plans = self.plans_on_bus
         status = bus.status_of(j, plans)
         if status == AgentStatus.HOLDING or (status == AgentStatus.IDLE and not starting):
             return False
-        if j not in a.listen_to:
+        if j not in self.listen_to:
             return True  # not one of ours to listen to: liveliness and status decide
         nb = bus.estimates[j]
         if j in self.silent:  # (lockstep: the watchdog's) until it has published since. (Not "an
@@ -407,15 +420,15 @@ class Flight:
         if nb.status != AgentStatus.FLYING:
             return False
         # stale in plan time (the flight controllers' clock): a pause of the whole swarm is not a loss
-        return not check_fresh or self.t_p - nb.t_plan_s <= a.params.values["NB_TIMEOUT_S"]
+        return not check_fresh or self.t_p - nb.t_plan_s <= self.params.values["NB_TIMEOUT_S"]
 
     def why_absent(self, j: int) -> str:
-        bus = self.a.bus
+        bus = self.bus
         alive = j in bus.alive or j in self._kept_alive()
-        if not alive and j not in self.a.listen_to:
+        if not alive and j not in self.listen_to:
             return "no liveliness"
         lost = "" if alive else "no liveliness, "
-        status = bus.status_of(j, self.a.plans_on_bus)
+        status = bus.status_of(j, self.plans_on_bus)
         nb = bus.estimates.get(j)
         if nb is not None and nb.heard:
             return (f"{lost}status {status.name if status else '?'}, estimate {1e3 * (time.time() - nb.stamp_s):.0f} ms "

@@ -53,10 +53,11 @@ class FlightController:
     """One agent's flight controller (system ``sysid``, component 1) on link ``url``, of the kind
     ``profile`` names (``autopilots.registry.PROFILES``; "auto": as its HEARTBEAT says). ``home``:
     the swarm's common origin (latitude, longitude [deg], altitude [m]), for autopilots whose local
-    frame is their own."""
+    frame is their own. ``after_read`` and ``on_link_event``: its link's (``links.MavLink``)."""
 
     def __init__(self, sysid: int, url: str, log, on_state: Callable[[], None], profile: str = "auto",
-                 home: tuple[float, float, float] | None = None) -> None:
+                 home: tuple[float, float, float] | None = None, after_read: Callable[[], None] | None = None,
+                 on_link_event: Callable[[str], None] = lambda text: None) -> None:
         self.sysid = sysid
         self.profile, self.home = profile, home
         self.autopilot: Autopilot | None = None
@@ -64,12 +65,15 @@ class FlightController:
         self.identity = (-1, -1)
         """Its HEARTBEAT's autopilot and type fields."""
         self._told_identity: tuple[int, int] | None = None
-        self.link = Px4ZenohLink("fc", url, sysid, COMP_ONBOARD) if is_px4_zenoh(url) else \
-            MavLink("fc", url, sysid, COMP_ONBOARD)
+        link = Px4ZenohLink if is_px4_zenoh(url) else MavLink
+        self.link = link("fc", url, sysid, COMP_ONBOARD, after_read=after_read, on_event=on_link_event)
         """MAVLink, or PX4's Zenoh bridge carrying the same (``px4_link``)."""
         self.log = log
         self.on_state = on_state
         self.heard = False
+        self.heard_s: float | None = None
+        """When it was last heard [s, time.monotonic] (kept by ``forget``: the agent's watchdog of a
+        lost flight controller)."""
         self.armed = False
         self.mode = 0
         self.critical = False
@@ -152,6 +156,7 @@ class FlightController:
 
     def take(self, msg, t_rx: float) -> None:
         """A message from this agent's autopilot."""
+        self.heard_s = time.monotonic()
         t = msg.get_type()
         if t in _TELEMETRY:
             self._telemetry(t, msg, t_rx)

@@ -133,21 +133,30 @@ class Params:
 
 
 class GroundStation:
-    """``agent``: the ``Agent`` this is the face of (its parameters, plans and flight)."""
+    """Agent ``agent_id``'s face to the ground station on link ``url``. ``fc``: its flight controller
+    (``FlightController``: frames are routed to and from its link, its own are handed to it);
+    ``params``: the companion's parameters; ``plans`` and ``plan_server``: its plans and the mission
+    protocol; ``ask_to_land()``: its flight's answer to a land command (``Flight.ask_to_land``);
+    ``heartbeat()``: the companion's HEARTBEAT now; ``store``: where the signing streams are kept;
+    ``say(text, severity)`` and ``log``: its voice; ``frames_per_s``: each sender's share of the
+    link (0: no limit); ``on_link_event``: its link's (``links.MavLink``)."""
 
-    def __init__(self, agent, url: str, signing_key: bytes | None) -> None:
-        self.a = agent
-        self.link = MavLink("gcs", url, agent.id, COMP_ONBOARD)
+    def __init__(self, agent_id: int, url: str, signing_key: bytes | None, *, fc, params: Params, plans, plan_server,
+                 ask_to_land, heartbeat, store, say, log, frames_per_s: float,
+                 on_link_event=lambda text: None) -> None:
+        self.id, self.fc, self.params, self.plans, self.plan_server = agent_id, fc, params, plans, plan_server
+        self.ask_to_land, self.heartbeat, self.store, self.say, self.log = ask_to_land, heartbeat, store, say, log
+        self.link = MavLink("gcs", url, agent_id, COMP_ONBOARD, on_event=on_link_event)
         self.signing_key = signing_key
         if signing_key is not None:
             setup_signing(self.link.codec, signing_key, GCS_LINK_ID, UNSIGNED_FROM_GCS.__contains__, self.link.counters,
                           clock=time.time)
-        self.router = Router(agent.id, COMP_ONBOARD)
+        self.router = Router(agent_id, COMP_ONBOARD)
         self._statustext_id = 0
         self._forwarded_at: dict[int, float] = {}
         self._refusals_told: Counter[str] = Counter()
         self._signing_kept: dict[str, int] = {}
-        rate = agent.opts.gcs_frames_per_s or math.inf  # (0: no limit, as for a fuzzer or a trusted link)
+        rate = frames_per_s or math.inf  # (0: no limit, as for a fuzzer or a trusted link)
         self.shed = Shedder(rate, GCS_FRAMES_BURST / GCS_FRAMES_PER_S * rate)
         self._fc_forward = TokenBucket(FC_FORWARD_PER_S, FC_FORWARD_BURST)
         self._checked_cmds = Shedder(CHECKED_CMDS_PER_S, CHECKED_CMDS_BURST)
@@ -159,35 +168,33 @@ class GroundStation:
     def from_fc(self, msgs: list, t_rx: float) -> None:
         """Frames from the flight-controller link: this agent's flight controller's to its face, and each
         to where it is going."""
-        a, fc_link = self.a, self.a.fc.link
+        fc, fc_link = self.fc, self.fc.link
         links = (fc_link, self.link)
         for msg in msgs:
             if not fc_link.routes:  # (PX4's Zenoh bridge: its face's alone)
-                a.fc_heard_s = time.monotonic()
-                a.fc.take(msg, t_rx)
+                fc.take(msg, t_rx)
                 continue
             self.router.learn(fc_link, msg)
             src = (msg.get_srcSystem(), msg.get_srcComponent())
-            if src == (a.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
-                a.fc_heard_s = time.monotonic()  # (the agent's watchdog: a lost flight controller)
-                a.fc.take(msg, t_rx)
+            if src == (self.id, mavlink.MAV_COMP_ID_AUTOPILOT1):
+                fc.take(msg, t_rx)
             for dest in self.router.destinations(fc_link, msg, links):
                 if dest is self.link and not self._rate_ok(msg):
                     continue
                 dest.write(msg.get_msgbuf())
-            if src[0] != a.id and self.router.for_me(msg):
+            if src[0] != self.id and self.router.for_me(msg):
                 self._for_me(fc_link, msg)
 
     def from_gcs(self, link: MavLink, msgs: list, t_rx: float) -> None:
         """Frames from the ground-station link: each sender's within its bucket, the rest shed."""
-        fc_link = self.a.fc.link
+        fc_link = self.fc.link
         links = (fc_link, self.link) if fc_link.routes else (self.link,)
         now = time.monotonic()
         for msg in msgs:
             if not self.shed.take(link.peer, now):
                 link.counters["shed_frames"] += 1
                 continue
-            if msg.get_srcSystem() == self.a.id:  # (a ground station speaking as this vehicle: the
+            if msg.get_srcSystem() == self.id:  # (a ground station speaking as this vehicle: the
                 link.counters["refused_own_system"] += 1  # router would send its flight controller's traffic there)
                 continue
             self.router.learn(link, msg)
@@ -208,7 +215,7 @@ class GroundStation:
         mid = msg.get_msgId()
         if mid not in HIGH_RATE:
             return True
-        rate = self.a.params.values["GCS_TLM_HZ"]
+        rate = self.params.values["GCS_TLM_HZ"]
         if rate <= 0:
             return False
         now = time.monotonic()
@@ -220,10 +227,10 @@ class GroundStation:
     # -- component 191 ----------------------------------------------------------------------------
 
     def _for_me(self, link: MavLink, msg) -> None:
-        if self.a.plan_server.handle(link, msg, time.monotonic()):
+        if self.plan_server.handle(link, msg, time.monotonic()):
             return
         t = msg.get_type()
-        params = self.a.params
+        params = self.params
         if t == "PARAM_REQUEST_LIST":
             for k in range(len(params.values)):
                 link.send(self._param_value(k))
@@ -244,11 +251,11 @@ class GroundStation:
             self._command(link, msg)
 
     def _param_value(self, k: int):
-        values = self.a.params.values
+        values = self.params.values
         name = list(values)[k]
         if name == "PLAN_T_S":  # the plan time now, for commands timed in it (NaN: no plan in force)
-            start = self.a.plans.start_unix_s
-            values[name] = math.nan if start is None else self.a.fc.now_unix() - start
+            t_plan = self.plans.plan_time_now()
+            values[name] = math.nan if t_plan is None else t_plan
         return mavlink.MAVLink_param_value_message(name.encode(), float(values[name]), mavlink.MAV_PARAM_TYPE_REAL32,
                                                    len(values), k)
 
@@ -256,7 +263,7 @@ class GroundStation:
         reason = ""
         if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             result = mavlink.MAV_RESULT_ACCEPTED
-            link.send(self.a.heartbeat())
+            link.send(self.heartbeat())
         elif msg.command in CHECKED and not self._checked_cmds.take(link.peer, time.monotonic()):
             result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # (a flood of them: not checked, not said)
             self.link.counters["shed_commands"] += 1
@@ -266,11 +273,11 @@ class GroundStation:
             elif not all(0 <= half <= 0xFFFF and half == int(half) for half in (msg.param1, msg.param2)):  # (NaN fails)
                 result, reason = mavlink.MAV_RESULT_DENIED, "plan start refused: param1 and param2 must be the plan id's halves"
             else:
-                result, reason = self.a.plans.start(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
+                result, reason = self.plans.start(int(msg.param1) << 16 | int(msg.param2), msg.x + msg.y / 1000.0)
         elif msg.command in (mavlink.MAV_CMD_TRISWARM_LEADER_GOTO, mavlink.MAV_CMD_TRISWARM_LEADER_HOLD):
-            result, reason = self.a.plans.leader_command(msg)
+            result, reason = self.plans.leader_command(msg)
         elif msg.command == mavlink.MAV_CMD_NAV_LAND:  # (to the companion: it lands the vehicle itself)
-            result, reason = self.a.flight.ask_to_land()
+            result, reason = self.ask_to_land()
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
         if reason:
@@ -283,7 +290,7 @@ class GroundStation:
     def _refusal(self, text: str, severity: int) -> None:
         """What a command or parameter's answer says, said too (TEXTS_PER_S at most)."""
         if self._texts.take(time.monotonic()):
-            self.a.say(text, severity)
+            self.say(text, severity)
         else:
             self.link.counters["shed_texts"] += 1
 
@@ -296,16 +303,16 @@ class GroundStation:
         now = time.monotonic()
         began, ended = self._senders_told.look(self.shed.dropped, now)
         for sender, _ in began:
-            self.a.say(f"ground station at {_address(sender)} floods: frames beyond {self.shed.rate_per_s:g}/s dropped "
+            self.say(f"ground station at {_address(sender)} floods: frames beyond {self.shed.rate_per_s:g}/s dropped "
                        f"and counted (gcs_shed in the health report) until it stops", mavlink.MAV_SEVERITY_WARNING)
         for sender, n, lasted in ended:
-            self.a.say(f"ground station at {_address(sender)}: flood over, {n} frames dropped in {lasted:.0f} s")
+            self.say(f"ground station at {_address(sender)}: flood over, {n} frames dropped in {lasted:.0f} s")
         counts = self.shed_counts()
         began, ended = self._sheds_told.look({k: n for k, n in counts.items() if k != "shed_frames"}, now)
         for key, _ in began:
-            self.a.say(f"shedding {SHED_WHAT[key]} (gcs_shed {key})", mavlink.MAV_SEVERITY_WARNING)
+            self.say(f"shedding {SHED_WHAT[key]} (gcs_shed {key})", mavlink.MAV_SEVERITY_WARNING)
         for key, n, lasted in ended:
-            self.a.say(f"shedding over: {n} {SHED_WHAT[key]} in {lasted:.0f} s")
+            self.say(f"shedding over: {n} {SHED_WHAT[key]} in {lasted:.0f} s")
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """A text longer than 50 bytes goes in chunks (MAVLink 2 id, chunk_seq)."""
@@ -337,7 +344,7 @@ class GroundStation:
         if new:
             self._refusals_told = refused
             counts = ", ".join(f"{n} {k.removeprefix('refused_').replace('_', ' ')}" for k, n in sorted(new.items()))
-            self.a.say(f"refused frames from the ground station: {counts}", mavlink.MAV_SEVERITY_WARNING)
+            self.say(f"refused frames from the ground station: {counts}", mavlink.MAV_SEVERITY_WARNING)
 
     # -- signing streams across restarts --------------------------------------------------------------
 
@@ -347,14 +354,14 @@ class GroundStation:
         old, as the specification allows)."""
         if self.signing_key is None:
             return
-        store = self.a.store
+        store = self.store
         saved = store.load_signing_streams()
         if store.problem:
-            self.a.log.warning(store.problem)
+            self.log.warning(store.problem)
             store.problem = None
         taken = self.link.codec.signing.restore(saved)
         if taken:
-            self.a.log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
+            self.log.info(f"signing: {taken} ground-station stream(s) taken up where they were")
         self._signing_kept = self.link.codec.signing.streams()
 
     def keep_signing_streams(self) -> None:
@@ -362,5 +369,5 @@ class GroundStation:
         if self.signing_key is None:
             return
         streams = self.link.codec.signing.streams()
-        if streams != self._signing_kept and self.a.store.save_signing_streams(streams):  # (a failure: said once)
+        if streams != self._signing_kept and self.store.save_signing_streams(streams):  # (a failure: said once)
             self._signing_kept = streams

@@ -72,7 +72,9 @@ class MavLink:
     routes = True
     """Frames are routed through it (between it and the process's other links)."""
 
-    def __init__(self, name: str, url: str, sysid: int, compid: int, client_timeout_s: float = CLIENT_TIMEOUT_S) -> None:
+    def __init__(self, name: str, url: str, sysid: int, compid: int, client_timeout_s: float = CLIENT_TIMEOUT_S,
+                 after_read: Callable[[], None] | None = None,
+                 on_event: Callable[[str], None] = lambda text: None) -> None:
         self.name, self.url = name, url
         self.client_timeout_s = client_timeout_s
         self.codec = new_codec(sysid, compid)
@@ -81,9 +83,9 @@ class MavLink:
         self._on_receive: Callable | None = None
         self.peer: tuple | None = None
         """The address the batch being handled came from (UDP; None on other transports)."""
-        self.after_read: Callable[[], None] | None = None
+        self.after_read = after_read
         """Called once everything waiting has been read (e.g. to act on the newest sample only)."""
-        self.on_event: Callable[[str], None] = lambda text: None
+        self.on_event = on_event
         """Told, in one line, that a serial port failed and that it is back."""
         self._datagrams = False
         self._serial = False

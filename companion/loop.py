@@ -52,7 +52,15 @@ class Tick:
 
 
 class ControlLoop:
-    """``agents``: how many agents the process flies."""
+    """``agents``: how many agents the process flies.
+
+    What a tick uses of an agent (``agent.Agent``): its flight controller (``fc``: samples, commands,
+    the answers owed in lockstep), its flight (``flight``: the phase, what the reference follows, who
+    counts), its controller row (``bank``, ``row``, ``design``, ``lead_s``, ``dt_s``, ``idle``), the
+    plan (``plan_time``, ``topology_at``, ``plans.switch_due``, ``switch_plan``, ``plans.leader_state``),
+    its neighbours (``in_neighbours``, ``in_weights``, ``bus.estimates``), its estimates on the bus
+    (``publish_estimate``, ``estimates_in``, ``lockstep``, ``nb_wait_s``), and ``health``,
+    ``clock_broke``, ``tick_failed``, ``log``."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop, agents: int) -> None:
         self.loop = loop
@@ -214,7 +222,7 @@ class ControlLoop:
             a = t.agent
             try:
                 t.xi = t.xhat - t.h
-                a.bus.publish_estimate(a.id, t.xi, t.t_p, AgentStatus.FLYING)
+                a.publish_estimate(t.xi, t.t_p, AgentStatus.FLYING)
             except Exception:
                 a.tick_failed()
                 t.xi = None
@@ -233,11 +241,11 @@ class ControlLoop:
         a = t.agent
         f = a.flight
         _references([t], tracking=f.hold, leader=no_leader)
-        a.bus.publish_estimate(a.id, t.xhat - t.h, t.t_p, AgentStatus.HOLDING)
+        a.publish_estimate(t.xhat - t.h, t.t_p, AgentStatus.HOLDING)
         if f.phase == Phase.LANDING:
             f.landing_tick(t.t_p, t.xhat)
-        elif f.has_path(a.plans.plan.schedule.at(t.t_p), f.presence()):
-            f.rejoin(t.t_plan, a.rejoin_source())
+        elif f.has_path(a.topology_at(t.t_p), f.presence()):
+            f.rejoin(t.t_plan, f.rejoin_source())
         t.v = pinned_input(a.design, (t.xhat - t.h)[None, :], t.x0, t.gamma[None, :])[0]
 
     # -- 3. wait --------------------------------------------------------------------------------------
@@ -248,15 +256,15 @@ class ControlLoop:
         for t in ticks:
             a = t.agent
             try:
-                t.topo = a.plans.plan.schedule.at(t.t_p)
+                t.topo = a.topology_at(t.t_p)
                 t.expected = [j for j in a.in_neighbours[t.topo.name] if a.flight.usable(j, check_fresh=False)]
             except Exception:
                 a.tick_failed()
                 continue
             t.since_wall = now
-            t.lockstep = a.fc.answers.lockstep
-            t.next_wall = now + (LOCKSTEP_RECHECK_S if t.lockstep else a.params.values["NB_WAIT_MS"] / 1000.0)
-            if a.bus.ready(t.expected, t.t_p, 0.5 * a.dt_s, a.plans_on_bus):
+            t.lockstep = a.lockstep
+            t.next_wall = now + (LOCKSTEP_RECHECK_S if t.lockstep else a.nb_wait_s)
+            if a.estimates_in(t.expected, t.t_p):
                 ready.append(t)
             else:
                 self.waiting[a] = t
@@ -274,7 +282,7 @@ class ControlLoop:
     def _check_waiting(self, ticks: list[Tick]) -> None:
         # (only ticks still waiting: an estimate that came meanwhile may have finished some already)
         ticks = [t for t in ticks if self.waiting.get(t.agent) is t]
-        ready = [t for t in ticks if t.agent.bus.ready(t.expected, t.t_p, 0.5 * t.agent.dt_s, t.agent.plans_on_bus)]
+        ready = [t for t in ticks if t.agent.estimates_in(t.expected, t.t_p)]
         for t in ready:
             del self.waiting[t.agent]
         self._set_waiting()
@@ -330,16 +338,15 @@ class ControlLoop:
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
-        tolerance = 0.5 * a.dt_s
         if self.stalls.silent_s(t.since_wall, now) > NB_WATCHDOG_S:
-            late = [j for j in t.expected if not a.bus.ready([j], t.t_p, tolerance, a.plans_on_bus)]
+            late = [j for j in t.expected if not a.estimates_in([j], t.t_p)]
             if late:
                 for j in late:
-                    f.silent.setdefault(j, t.t_p - tolerance)
+                    f.silent.setdefault(j, t.t_p - 0.5 * a.dt_s)  # (the instant it had no estimate for)
                 a.log.warning(f"lockstep: no estimate for t_plan {t.t_p:.3f} from agent(s) {late} in "
                               f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
             t.expected = [j for j in t.expected if j not in late]
-        return a.bus.ready(t.expected, t.t_p, tolerance, a.plans_on_bus)
+        return a.estimates_in(t.expected, t.t_p)
 
     # -- 4. path, 5. protocol and command -------------------------------------------------------------
 

@@ -101,16 +101,19 @@ def leader_with_moves(leader: Formation, moves: list[dict]) -> Formation:
 
 
 class Plans:
-    """One agent's plans. ``on_reopen()``: a new plan is in force (the flight opens it);
-    ``on_schedule()``: it starts at ``mission.start_unix_s``; ``on_switch(t_plan)``: a plan was put
-    in force in flight."""
+    """One agent's plans. ``clock``: the flight controller's (``clock.FcClock``), which plan time runs
+    on; ``on_reopen(reopen)``: a new plan is in force (the flight opens it); ``on_schedule()``: it
+    starts at ``mission.start_unix_s``; ``in_flight()``: whether the agent flies; ``clock_check()``:
+    why the clock a plan starts on is not good enough for a common start, or None."""
 
-    def __init__(self, agent: int, store: StateStore, clock, log, on_reopen, on_schedule, in_flight) -> None:
+    def __init__(self, agent: int, store: StateStore, clock, log, on_reopen, on_schedule, in_flight,
+                 clock_check=lambda: None) -> None:
         self.agent = agent
         self.store = store
         self.clock = clock
         self.log = log
         self.on_reopen, self.on_schedule, self.in_flight = on_reopen, on_schedule, in_flight
+        self.clock_check = clock_check
         self.mission: Mission | None = None
         self.plan: Plan | None = None
         self.leader: Formation | None = None
@@ -121,8 +124,6 @@ class Plans:
         """Received, valid, waiting for its start command."""
         self.switch: tuple[Plan, int, float] | None = None
         """A plan to put in force in flight, and when [Unix s]."""
-        self.clock_check = lambda: None
-        """Why the clock a plan starts on is not good enough for a common start, or None."""
         self._items: tuple = (None, [])
 
     @property
@@ -162,6 +163,25 @@ class Plans:
 
     def save(self) -> None:
         self.store.save(self.mission)
+
+    def set_phase(self, phase: str) -> None:
+        """The mission's phase ("scheduled", "flying", "landing", "done"), saved."""
+        self.mission.phase = phase
+        self.save()
+
+    def schedule_at(self, start_unix_s: float) -> None:
+        """The mission in force starts at ``start_unix_s`` [Unix s, the flight controller's clock], saved."""
+        self.mission.start_unix_s = start_unix_s
+        self.set_phase("scheduled")
+
+    def plan_time(self, boot_us: int) -> float:
+        """A flight-controller time [us since its boot] as plan time [s] of the mission in force."""
+        return self.clock.plan_time(boot_us, self.mission.start_unix_s)
+
+    def plan_time_now(self) -> float | None:
+        """The plan time now [s] (its flight controller's newest sample), or None: no start time."""
+        start = self.start_unix_s
+        return None if start is None else self.clock.now() - start
 
     # -- the mission protocol -------------------------------------------------------------------
 

@@ -94,15 +94,16 @@ class Px4ZenohLink:
     routes = False
     """Nothing is routed through it: the ground station has its own link to PX4."""
 
-    def __init__(self, name: str, url: str, sysid: int, compid: int) -> None:
+    def __init__(self, name: str, url: str, sysid: int, compid: int, after_read: Callable[[], None] | None = None,
+                 on_event: Callable[[str], None] = lambda text: None) -> None:
         self.name, self.url = name, url
         self.endpoint, self.namespace, self.domain, self.simulator = parse_url(url)
         self.sysid, self.compid = sysid, compid
         self.codec = new_codec(sysid, compid)  # (packs what is handed to the face)
         self._parser = new_codec(sysid, compid)  # (reads the face's own frames)
         self.counters: Counter[str] = Counter()
-        self.after_read: Callable[[], None] | None = None
-        self.on_event: Callable[[str], None] = lambda text: None
+        self.after_read = after_read
+        self.on_event = on_event
         self.peer = None
         self.fatal: str | None = None
         """Why PX4 cannot be flown over this link (its message types are not the companion's), once known."""

@@ -194,10 +194,10 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     plan, timeout_s = 7, 0.2
     estimates = {j: Neighbour() for j in (2, 3, 4)}
     bus = SimpleNamespace(alive={1, 4}, changes=0, estimates=estimates, status_of=lambda j, plans: None)
-    agent = SimpleNamespace(id=1, bus=bus, listen_to=frozenset({2, 3}), plans_on_bus=(plan,),
-                            fc=SimpleNamespace(now_unix=lambda: 1000.0, answers=SimpleNamespace(lockstep=False)),
-                            params=SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}))
-    flight = Flight(agent)
+    fc = SimpleNamespace(now_unix=lambda: 1000.0, answers=SimpleNamespace(lockstep=False))
+    flight = Flight(1, fc, None, SimpleNamespace(values={"NB_TIMEOUT_S": timeout_s}),
+                    None, None, autostart=False, on_phase=None, controller_reset=None, lead_s=None, entry=None)
+    flight.opened(bus, frozenset({2, 3}), (plan,))
     flight.t_p = 50.0
     for j, t_plan in ((2, 50.0 - 0.01), (3, 50.0 - 1.0)):
         nb = estimates[j]
@@ -211,7 +211,7 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
     # in lockstep, a token gone counts only after LOCKSTEP_GRACE_S of plan time (a starved machine
     # expires Zenoh's lease on the wall clock while the flight's clock stands)
-    agent.fc.answers.lockstep = True
+    fc.answers.lockstep = True
     bus.alive.add(4)
     bus.changes += 1
     assert flight.usable(4)
@@ -221,6 +221,6 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     flight.t_p = 50.0 + LOCKSTEP_GRACE_S
     assert not flight.usable(4) and flight.why_absent(4) == "no liveliness"
     flight.t_p = 50.0
-    agent.fc.answers.lockstep = False
+    fc.answers.lockstep = False
     estimates[2].plan_id = plan + 1  # another plan's estimates are no sign of this plan's neighbour
     assert not flight.usable(2)

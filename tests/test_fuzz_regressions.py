@@ -118,9 +118,10 @@ def test_a_link_counts_empty_datagrams_and_cut_frames():
 def test_a_plan_start_whose_plan_id_is_not_two_halves_is_denied(half):
     """PLAN_START with a NaN or infinite plan-id half raised in the ground-station link's read."""
     starts, sent = [], []
-    agent = SimpleNamespace(id=1, say=lambda text, severity=None: None, opts=SimpleNamespace(gcs_frames_per_s=100.0),
-                            plans=SimpleNamespace(start=lambda pid, t: starts.append((pid, t)) or (M.MAV_RESULT_ACCEPTED, "")))
-    gs = GroundStation(agent, "udpin:127.0.0.1:0", None)
+    plans = SimpleNamespace(start=lambda pid, t: starts.append((pid, t)) or (M.MAV_RESULT_ACCEPTED, ""))
+    gs = GroundStation(1, "udpin:127.0.0.1:0", None, fc=None, params=None, plans=plans, plan_server=None,
+                       ask_to_land=None, heartbeat=None, store=None, say=lambda text, severity=None: None, log=None,
+                       frames_per_s=100.0)
     link = SimpleNamespace(send=sent.append, peer=("127.0.0.1", 14550), counters=Counter())
     for p1, p2 in ((half, 0x5678), (0x1234, half), (0x1234, 0x5678)):
         gs._command(link, M.MAVLink_command_int_message(1, COMP_ONBOARD, 0, M.MAV_CMD_TRISWARM_PLAN_START, 0, 0, p1, p2,

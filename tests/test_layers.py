@@ -55,3 +55,22 @@ def test_the_rule_sees_an_import_that_breaks_it(tmp_path):
     probe.write_text("from triswarm.companion import bus\nfrom ...gcs import stack\nimport triswarm.protocol.frames\n"
                      "from . import sibling\nfrom .. import physics\n")
     assert triswarm_imports(probe, "sitl", tmp_path) == {"companion", "gcs", "protocol"}
+
+
+def rooms_handed_the_agent(source: str) -> list[str]:
+    """The classes that ``source`` (``companion/agent.py``) builds with ``self``, the whole agent,
+    among their arguments."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id[:1].isupper():
+            if any(isinstance(arg, ast.Name) and arg.id == "self" for arg in [*node.args, *(k.value for k in node.keywords)]):
+                found.append(node.func.id)
+    return sorted(found)
+
+
+def test_no_companion_room_is_handed_the_whole_agent():
+    """The agent builds each of its rooms (flight, ground station, plans...) from the collaborators it
+    uses, never from the agent itself: a room changes another only through that room's methods."""
+    assert rooms_handed_the_agent((ROOT / "companion" / "agent.py").read_text(encoding="utf-8")) == []
+    broken = "def __init__(self, url):\n    self.flight = Flight(self)\n    self.gcs = GroundStation(url, agent=self)\n"
+    assert rooms_handed_the_agent(broken) == ["Flight", "GroundStation"]

@@ -84,8 +84,7 @@ def test_a_plan_start_is_refused_on_a_bad_clock(tmp_path):
 
     scheduled = []
     plans = Plans(1, None, FcClock(), logging.getLogger("test"), lambda reopen: None, lambda: scheduled.append(1),
-                  lambda: False)
-    plans.clock_check = lambda: "the companion's clock is not synchronised"
+                  lambda: False, clock_check=lambda: "the companion's clock is not synchronised")
     result, reason = plans.start(0x1234, 4e9)
     assert result == mavlink.MAV_RESULT_DENIED
     assert reason == "plan start refused: the companion's clock is not synchronised"
