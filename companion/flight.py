@@ -365,7 +365,7 @@ class Flight:
         """Which agents count now (``usable``), every one. Of the agents this one does not listen
         to, only liveliness, status and the start decide: that part is kept until one changes."""
         starting = self.fc.now_unix() - self.flying_since < START_GRACE_S
-        key = (self.bus.changes, starting, self._kept_alive())
+        key = (self.bus.changes, starting, self._liveliness_kept())
         if self._presence_base is None or self._presence_base[0] != key:
             n = self.plans.plan.n_agents
             self._presence_base = (key, [self.usable(j) for j in range(1, n + 1)])
@@ -383,11 +383,19 @@ class Flight:
             found = self._paths[key] = bool(topo.reachable_from_leader(np.array(present))[self.id - 1])
         return found
 
-    def _kept_alive(self) -> frozenset[int]:
+    def _liveliness_kept(self) -> frozenset[int]:
         """The agents whose liveliness token went but that still count as alive (lockstep's grace,
         ``liveliness.py``)."""
         return self.liveliness.update(self.bus.alive, self.bus.changes, self.t_p,
                                       LOCKSTEP_GRACE_S if self.fc.answers.lockstep else 0.0)
+
+    def _alive(self, j: int) -> bool:
+        """Agent j's token is there, or it went but j counts as alive for its grace: only an agent
+        this one does not listen to, whose token is all it has of it. (A neighbour's estimates are a
+        sign of life of their own, and the lockstep wait does not wait for a neighbour without a
+        token: a dead one would cost a re-offered state per tick, for the whole grace.)"""
+        kept = self._liveliness_kept()  # (every time: it sees each change of the bus's set)
+        return j in self.bus.alive or (j in kept and j not in self.listen_to)
 
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)
@@ -398,7 +406,7 @@ class Flight:
         if j == self.id:
             return True
         bus = self.bus
-        alive = j in bus.alive or j in self._kept_alive()
+        alive = self._alive(j)
         if not alive and (j not in self.listen_to or not check_fresh):  # (lockstep's wait: only for the living)
             return False
         starting = self.fc.now_unix() - self.flying_since < START_GRACE_S  # the swarm takes off together
@@ -424,7 +432,7 @@ class Flight:
 
     def why_absent(self, j: int) -> str:
         bus = self.bus
-        alive = j in bus.alive or j in self._kept_alive()
+        alive = self._alive(j)
         if not alive and j not in self.listen_to:
             return "no liveliness"
         lost = "" if alive else "no liveliness, "
