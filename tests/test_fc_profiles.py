@@ -24,7 +24,9 @@ M = mavutil.mavlink
 
 
 def fly(c: Companion, seconds: float) -> dict[str, list[int]]:
-    """Answer every attitude for ``seconds`` of wall time; each message type's stamps [us]."""
+    """Answer every attitude for ``seconds`` of wall time; each message type's stamps [us]. (A state
+    the simulator offers again, its answer overdue on a starved machine (``LockstepOptions.reoffer_s``),
+    is the same message again: counted once.)"""
     stamps: dict[str, list[int]] = defaultdict(list)
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
@@ -34,7 +36,9 @@ def fly(c: Companion, seconds: float) -> dict[str, list[int]]:
             continue
         t = m.get_type()
         if t in ("ATTITUDE", "LOCAL_POSITION_NED", "ODOMETRY", "ATTITUDE_QUATERNION", "HIGHRES_IMU"):
-            stamps[t].append(m.time_boot_ms * 1000 if hasattr(m, "time_boot_ms") else m.time_usec)
+            stamp = m.time_boot_ms * 1000 if hasattr(m, "time_boot_ms") else m.time_usec
+            if not stamps[t] or stamps[t][-1] != stamp:  # (else offered again: answered again below)
+                stamps[t].append(stamp)
         if t == "ATTITUDE":
             c.answer(m.time_boot_ms)
         elif t == "HEARTBEAT" and not stamps:
