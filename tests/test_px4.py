@@ -30,6 +30,8 @@ from .poll import poll
 from .stack_helpers import judge, judge_truth
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
+START_DELAY_S = 12.0
+"""Launch to the plan's start [s, wall]: the firmwares were ready 4 s after their launch in make test."""
 OFFBOARD_LOSS_S = 1.0
 """COM_OF_LOSS_T of the shipped airframe (deploy/px4/)."""
 HEARTBEAT_S = 1.0
@@ -60,12 +62,12 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
     path, plan = plan_file(tmp_path, {
         "name": "px4-three", "drones": 3, "duration_s": 40.0, "leader": {"position_m": [0.0, 0.0, 0.0]},
         "formation": {"type": "rotating-polygon", "radius_m": 4.0, "altitude_m": 6.0, "rate_rad_s": 0.3}})
-    with Stack(path, tmp_path / "stack", 3, start_delay_s=20.0, rate_hz=100.0, agents_per_process=0,
+    with Stack(path, tmp_path / "stack", 3, start_delay_s=START_DELAY_S, rate_hz=100.0, agents_per_process=0,
                autopilot="px4", firmware=px4_package()) as stack, Recorder(stack.manifest) as rec:
         announced = subscriptions(stack.manifest["zenoh_router"])
         start = stack.start_at
         end = start + plan.duration_s
-        poll(lambda: rec.now() >= end, 20.0 + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
+        poll(lambda: rec.now() >= end, START_DELAY_S + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
         t_from = plan.settled_from_s
         ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
         with GroundLink(stack.endpoints()) as link:
@@ -115,10 +117,10 @@ def test_a_hover_then_offboard_lost_on_px4(tmp_path):
     path, plan = plan_file(tmp_path, {
         "name": "px4-hover", "drones": 1, "duration_s": 120.0, "leader": {"position_m": [0.0, 0.0, 0.0]},
         "formation": {"type": "rotating-polygon", "radius_m": 0.0, "altitude_m": 4.0, "rate_rad_s": 0.0}})
-    with Stack(path, tmp_path / "stack", 1, start_delay_s=15.0, rate_hz=100.0, autopilot="px4",
+    with Stack(path, tmp_path / "stack", 1, start_delay_s=START_DELAY_S, rate_hz=100.0, autopilot="px4",
                firmware=px4_package()) as stack, Recorder(stack.manifest) as rec:
         start = stack.start_at
-        poll(lambda: rec.now() >= start + 22.0, 15.0 + 22.0 + 60.0, "22 s of the hover", every_s=0.2)
+        poll(lambda: rec.now() >= start + 22.0, START_DELAY_S + 22.0 + 60.0, "22 s of the hover", every_s=0.2)
         ok, report = judge(plan, rec, start, 15.0, 22.0, position_bound_m=0.10, attitude_bound_rad=0.02)
         assert ok, f"hover over [15, 22] s: {report}"
 
