@@ -390,12 +390,9 @@ class Flight:
                                       LOCKSTEP_GRACE_S if self.fc.answers.lockstep else 0.0)
 
     def _alive(self, j: int) -> bool:
-        """Agent j's token is there, or it went but j counts as alive for its grace: only an agent
-        this one does not listen to, whose token is all it has of it. (A neighbour's estimates are a
-        sign of life of their own, and the lockstep wait does not wait for a neighbour without a
-        token: a dead one would cost a re-offered state per tick, for the whole grace.)"""
+        """Agent j's token is there, or it went but j counts as alive for its grace (lockstep)."""
         kept = self._liveliness_kept()  # (every time: it sees each change of the bus's set)
-        return j in self.bus.alive or (j in kept and j not in self.listen_to)
+        return j in self.bus.alive or j in kept
 
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)

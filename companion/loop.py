@@ -24,6 +24,7 @@ counts a live neighbour that has stopped publishing (a hung process) as absent, 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections import defaultdict
 
@@ -332,21 +333,30 @@ class ControlLoop:
         self._arm_timer()
 
     def _lockstep_recheck(self, t: Tick, now: float) -> bool:
-        """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness
-        and status tell), and after NB_WATCHDOG_S of wall time (in which this process ran) the live
-        ones that never published (hung), saying so. True when the rest are in."""
+        """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness,
+        after its grace, and status tell), and the live ones from which no new estimate has come for
+        NB_WATCHDOG_S of wall time in which this process ran (hung, or dead in their grace), saying
+        so. The silence is a neighbour's, from its newest estimate on (from the wait's start for one
+        never heard): not each tick's, or a dead neighbour would cost each tick a wait. True when the
+        rest are in."""
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
-        if self.stalls.silent_s(t.since_wall, now) > NB_WATCHDOG_S:
-            late = [j for j in t.expected if not a.estimates_in([j], t.t_p)]
-            if late:
-                for j in late:
-                    f.silent.setdefault(j, t.t_p - 0.5 * a.dt_s)  # (the instant it had no estimate for)
-                a.log.warning(f"lockstep: no estimate for t_plan {t.t_p:.3f} from agent(s) {late} in "
-                              f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
+        late = [j for j in t.expected if not a.estimates_in([j], t.t_p)
+                and self.stalls.silent_s(self._heard_at(a, j, t.since_wall, now), now) > NB_WATCHDOG_S]
+        if late:
+            for j in late:
+                f.silent.setdefault(j, t.t_p - 0.5 * a.dt_s)  # (the instant it had no estimate for)
+            a.log.warning(f"lockstep: no estimate for t_plan {t.t_p:.3f} from agent(s) {late} in "
+                          f"{NB_WATCHDOG_S:g} s of wall time though alive: counted absent until they publish again")
             t.expected = [j for j in t.expected if j not in late]
         return a.estimates_in(t.expected, t.t_p)
+
+    @staticmethod
+    def _heard_at(a, j: int, since_wall: float, now: float) -> float:
+        """When [s, time.monotonic] neighbour j's newest estimate came (the wait's start if never)."""
+        received = a.bus.estimates[j].received_at  # [Unix s]
+        return since_wall if not math.isfinite(received) else now - (time.time() - received)
 
     # -- 4. path, 5. protocol and command -------------------------------------------------------------
 

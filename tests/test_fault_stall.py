@@ -25,13 +25,15 @@ import time
 
 import pytest
 import tomli_w
+import zenoh
 
 from triswarm.gcs.recorder import Recorder
 from triswarm.gcs.scenarios import load_plan
 from triswarm.gcs.stack import Stack
 from triswarm.protocol.stall import Stalls
 
-from .stack_helpers import judge, small_plan, wait_sim
+from .poll import poll
+from .stack_helpers import BusObserver, judge, small_plan, wait_sim
 
 N = 3
 LOCKSTEP_TIMEOUT_S = 4.0
@@ -93,4 +95,46 @@ def test_a_stalled_machine_is_not_a_dead_process(tmp_path, paper_spec, agents_pe
         assert "flight controller lost" not in logs[name], (name, logs[name][-2000:])  # (FC_SILENT_S)
         assert "hold" not in logs[name], (name, logs[name][-2000:])
     assert "has not answered" not in logs["sitl"], logs["sitl"][-2000:]  # (the SITL's lockstep timeout)
+    assert ok, worst
+
+
+@pytest.mark.slow
+def test_one_starved_companion_is_not_a_lost_neighbour(tmp_path, paper_spec):
+    """Liveliness on simulated time. Three drones in lockstep, a companion process each, over the
+    triangles graph (1 -> 2 -> 3 -> 1; agent 3 hears only agent 2, so without 2 it has no path to the
+    leader). Agent 2's process alone is stopped (SIGSTOP) until its Zenoh lease, on the wall clock,
+    has expired (its liveliness token is seen gone by a watcher), then woken: the others ran all
+    along, and saw it go. On the simulated clock nothing happened meanwhile (the clock stood for
+    agent 2's answer), so nobody may count it absent (neither the token's going, whose grace is
+    plan time, nor the neighbours' watchdog), nobody holds, and the formation keeps the paper's
+    bounds across it. (Taking the token's going at its word, agent 3 held for the seconds of plan
+    time agent 2's session took to come back.)"""
+    from triswarm.protocol.codec import alive_key
+
+    spec = small_plan(paper_spec, N, "starved")
+    spec["topology"]["families"] = ["triangles"]
+    plan_file = tmp_path / "starved.toml"
+    plan_file.write_text(tomli_w.dumps(spec))
+    plan = load_plan(str(plan_file))
+    with Stack(plan_file, tmp_path / "stack", N, start_delay_s=5.0, lockstep=True, agents_per_process=1) as stack, \
+            Recorder(stack.manifest) as rec, BusObserver("starved", stack.zenoh_base, N) as bus:
+        gone = []
+        watcher = bus.session.liveliness().declare_subscriber(
+            alive_key("starved", 2), lambda s: gone.append(s.kind == zenoh.SampleKind.DELETE) if s.kind else None)
+        start = stack.start_at
+        wait_sim(rec.now, start + 18.0, stack)
+        victim = stack.procs[stack.process_of[2]]
+        t_stop = rec.now() - start
+        os.kill(victim.pid, signal.SIGSTOP)
+        try:
+            poll(lambda: any(gone), 30.0, "agent 2's liveliness token gone with its lease")
+        finally:
+            os.kill(victim.pid, signal.SIGCONT)
+        wait_sim(rec.now, start + t_stop + 10.0, stack)
+        ok, worst = judge(plan, rec, start, 16.0, t_stop + 10.0)
+        watcher.undeclare()
+        logs = {name: stack.log(name) for name in stack.groups}
+    print("MEASURED " + json.dumps({"stopped_at_s": round(t_stop, 3), "worst": worst}))
+    for name, text in logs.items():
+        assert "hold" not in text and "lockstep: no estimate" not in text, (name, text[-2000:])
     assert ok, worst
