@@ -21,6 +21,9 @@ What this adds to the paper's law, and why (see docs/control-design.md):
   then the wind's share alone.
 * Body rates. Measured body rates can be three more outputs of the observer (``measured_rates``);
   off by default: they cost half the servo-delay margin (docs/control-design.md).
+* Servo range. A drone with a rotor held at the servo range's edge commits the v its rotors then
+  deliver (``kernels.input_shortfall_v``), so the observer's disturbance estimate does not wind up
+  on the actuators' shortfall; with no rotor at the edge, v itself, to the bit.
 * Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
   translational disturbance along the commanded specific thrust (the idea of PX4's hover-thrust
   estimator) and divided out of u, so a heavier drone or a weaker propeller is flown as designed.
@@ -169,6 +172,10 @@ class FormationController:
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
         self._adapt_k = self.adaptation_rate * self.dt_s if self._Einv is not None else 0.0
         self._wind_gain = self.wind_estimate_rate_1_s * self.dt_s if self._Einv is not None else 0.0
+        self._G = np.ascontiguousarray(np.linalg.inv(self.rfl.G_inv))
+        self._M0_inv = np.ascontiguousarray(np.linalg.inv(self.rfl.M0))
+        """G and M(0)^-1: what the observer is told a rotor held at the servo range's edge delivered,
+        as a protocol input (``kernels.input_shortfall_v``)."""
         self.wind_estimate_e_m_s = np.zeros((self.n, 3))
         """The wind each agent's controller has estimated, earth frame [m/s] (N, 3): the RFL cancels
         the drag of the drone's velocity relative to it."""
@@ -269,7 +276,8 @@ class FormationController:
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, self.drag_1_m,
                         MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1],
                         self.wind_estimate_e_m_s, self._wind_gain, WIND_ESTIMATE_FLOOR_M_S, r.airframe.servo_limit_rad,
-                        self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now)
+                        self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now,
+                        self._G, self._M0_inv)
         return Actuation(omega_now, alpha)
 
     def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> None:

@@ -102,6 +102,33 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, wind, max_pitch, u, yddot):
 
 
 @njit()
+def input_shortfall_v(xr, du, G, M0_inv, max_pitch, dv):
+    """The protocol input dv (6) that the RFL at x_r would have turned into the input change du (6,
+    rad^2/s^2): the inverse of ``rfl_xr_row``'s map v -> u at that state, which is affine in v
+    (u = G^-1 blockdiag(R^T, W) M0 v + ..., W = Psi^-1). dv = M0^-1 [Psi (G du)[3:6]; R (G du)[0:3]]."""
+    phi = xr[6]
+    theta = min(max(xr[7], -max_pitch), max_pitch)
+    psi = xr[8]
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(theta), math.cos(theta)
+    sp, cp = math.sin(psi), math.cos(psi)
+    w = np.zeros(6)
+    _matvec_add(G, du, w)
+    y = np.empty(6)
+    tt, sec = st / ct, 1.0 / ct
+    # eta rows: Psi(eta) times the Euler-acceleration part of w
+    y[0] = w[3] + sf * tt * w[4] + cf * tt * w[5]
+    y[1] = cf * w[4] - sf * w[5]
+    y[2] = sf * sec * w[4] + cf * sec * w[5]
+    # lambda rows: R_b2e times the body specific force
+    y[3] = ct * cp * w[0] + (sf * st * cp - cf * sp) * w[1] + (cf * st * cp + sf * sp) * w[2]
+    y[4] = ct * sp * w[0] + (sf * st * sp + cf * cp) * w[1] + (cf * st * sp - sf * cp) * w[2]
+    y[5] = -st * w[0] + sf * ct * w[1] + cf * ct * w[2]
+    dv[:] = 0.0
+    _matvec_add(M0_inv, y, dv)
+
+
+@njit()
 def rfl_xr(xr, v, L, M0, I, Ii, G_inv, g, drag, wind, max_pitch, u, yddot):
     for i in range(xr.shape[0]):
         rfl_xr_row(xr[i], v[i], L, M0, I, Ii, G_inv, g, drag, wind[i], max_pitch, u[i], yddot[i])
@@ -205,7 +232,7 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 @njit()
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, drag, max_pitch,
             kappa, adapt_k, k_lo, k_hi, wind, wind_gain, wind_floor, servo_limit, v_pipe, motor_pipe, v_applied,
-            v_out, omega, alpha, omega_now):
+            v_out, omega, alpha, omega_now, G, M0_inv):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
     predict half a period on, RFL (with the drag in the estimated wind, drag = k / m [1/m], 0 in no
     air), adapt and apply the thrust scale kappa, actuator inverse within the servo range, and
@@ -217,11 +244,16 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     are the translational disturbance.
 
     A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit) gets the
-    nearest force the range allows: its projection on the range's edge, none if it points away."""
+    nearest force the range allows: its projection on the range's edge, none if it points away. The
+    v committed for such a row is then the one the rotors deliver (``input_shortfall_v``: G and
+    M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
+    its disturbance estimate does not take up what the actuators could not deliver (no wind-up)."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)
     u = np.empty(6)
     yd = np.empty(6)
+    du = np.empty(6)
+    dv = np.empty(6)
     for k in range(rows.shape[0]):
         i = rows[k]
         v_out[k, :] = v_in[k, :]
@@ -241,6 +273,7 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
                 step = adapt_k * (z[i, 12] * a0 + z[i, 13] * a1 + z[i, 14] * a2) / norm2
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
         saturated = False
+        du[:] = 0.0
         for j in range(3):
             s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
             a = math.atan2(s, c)
@@ -249,8 +282,13 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
                 a = math.copysign(servo_limit, a)
                 along = s * math.sin(a) + c * math.cos(a)
                 s, c = max(along, 0.0) * math.sin(a), max(along, 0.0) * math.cos(a)
+                du[j], du[j + 3] = kappa[i] * s - u[j], kappa[i] * c - u[j + 3]
             omega[k, j] = math.sqrt(math.hypot(s, c))
             alpha[k, j] = a
+        if saturated:  # commit the v the rotors deliver: the observer's disturbance must not take up the shortfall
+            input_shortfall_v(zm, du, G, M0_inv, max_pitch, dv)
+            for q in range(6):
+                v_out[k, q] += dv[q]
         if wind_gain > 0.0 and drag > 0.0 and use_dist and not saturated:
             update_wind_estimate(zm, z[i, 12:15], drag, wind_gain, wind_floor, wind[i])
     push(rows, v_out, omega, False, v_pipe, motor_pipe, v_applied, omega_now)

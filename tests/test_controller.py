@@ -63,8 +63,9 @@ class NumpyController:
     docstring, not from its kernels: the observer (73) with the disturbance state, discretised
     (ZOH on v, FOH on y), the prediction over the servo delay, the disturbance cancelled, half a
     period on, (49) by linear solve (``RFL.control``) in the estimated wind, the thrust adaptation,
-    the wind estimate's step (kernels.update_wind_estimate's docstring) and the actuator inverse of
-    Remark 1 within the servo range."""
+    the wind estimate's step (kernels.update_wind_estimate's docstring), the actuator inverse of
+    Remark 1 within the servo range, and the v a drone at the range's edge commits (what its
+    rotors deliver)."""
 
     def __init__(self, design, n, rate_hz, adaptation_rate_1_s, air_density_kg_m3=0.0, wind_estimate_rate_1_s=0.0):
         A, B, C, F = design.observer_model()
@@ -113,6 +114,12 @@ class NumpyController:
         beyond = np.abs(alpha) > limit  # the force's projection on the servo range's edge, none if negative
         omega = np.where(beyond, np.sqrt(np.maximum(omega**2 * np.cos(alpha - edge), 0.0)), omega)
         alpha = np.where(beyond, edge, alpha)
+        # a drone with a rotor at the edge commits the v that gives what its rotors deliver: u is
+        # affine in v with slope beta(x) (51), so v + beta^-1 (u delivered - u)
+        x = self.rfl.phi_r_inverse(zm[:, :12])
+        shortfall = self.kappa[:, None] * model.actuator_map(omega, alpha) - u
+        dv = np.linalg.solve(self.rfl.beta(x), shortfall[..., None])[..., 0]
+        v = np.where(beyond.any(axis=1, keepdims=True), v + dv, v)
         if self.wind_gain and self.k_m:  # (not for a drone with a rotor at the servo range's edge)
             speed = np.maximum(np.linalg.norm(air_v, axis=1), 1.0)[:, None]
             d = self.z[:, 12:15]
