@@ -39,12 +39,14 @@ def test_with_sensor_noise(paper_plan):
 
 def test_measured_body_rates_under_heavy_noise(paper_plan):
     """Noise four times the default (position 0.08 m, attitude 0.02 rad, gyro 0.04 rad/s): the
-    observer with the measured rates as three more outputs flies the attitude markedly closer than
-    the observer alone (tests/bench/bench_rates.py; why it is not the default: docs/control-design.md)."""
+    observer with the measured rates as three more outputs flies the attitude closer than the
+    observer alone (tests/bench/bench_rates.py; why it is not the default: docs/control-design.md).
+    (Measured, seed 7: 0.0835 rad against 0.0946. The gap was wider, 0.085 against 0.120, before a
+    rotor at the servo range's edge stopped winding up the observer alone's disturbance estimate.)"""
     noise = SensorNoise(position_m=0.08, attitude_rad=0.02, gyro_rad_s=0.04)
     _, alone = fly(paper_plan, noise=noise, seed=7)
     _, rates = fly(paper_plan, noise=noise, seed=7, measured_rates=True)
-    assert rates.worst_attitude_rad < 0.75 * alone.worst_attitude_rad, (rates, alone)
+    assert rates.worst_attitude_rad < 0.95 * alone.worst_attitude_rad, (rates, alone)
     assert rates.worst_position_m < 0.15 and rates.worst_attitude_rad < 0.15, rates
 
 
