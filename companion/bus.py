@@ -65,6 +65,9 @@ from triswarm.protocol.codec import (AgentStatus, CodecError, Estimate, agent_of
 from .options import DEFAULT_ZENOH_BASE_PORT
 
 COPY_EVERY = 2  # every how many best-effort estimates (UDP) one also goes reliably (TCP)
+STATUS_ALIVE_S = 3.0
+"""An agent whose liveliness token never came is alive while its statuses (one a second at least)
+come: until this long [s, wall] after the newest."""
 INBOX_SIZE = 256  # estimates (or statuses) handed over and not yet read (the newest kept)
 ONE_WORKER_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
                       "net: (handover: app))")
@@ -271,6 +274,12 @@ class Bus:
         """The newest valid estimate of every agent of this process and of every agent one of them
         listens to."""
         self.alive: set[int] = set()
+        """The agents whose liveliness token is there, and those whose token never came but whose
+        statuses do (``STATUS_ALIVE_S``): Zenoh has been seen to lose a token's declaration for a
+        whole flight while the agent flew and said so."""
+        self._tokens: set[int] = set()
+        self._said_at: dict[int, float] = {}  # agents alive by their statuses: the newest's [s, monotonic]
+        self._said_checked = 0.0
         self.statuses: dict[int, tuple[AgentStatus, object]] = {}
         """The newest status of each agent and the plan it said it flies."""
         self.changes = 0
@@ -461,9 +470,13 @@ class Bus:
         self.take_estimates()
         while (sample := self._alive_sub.try_recv()) is not None:
             self._alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+        now = time.monotonic()
         if self._status_inbox:
             for key, data in self._status_inbox.take():
-                self._status(key, data)
+                self._status(key, data, now)
+        if self._said_at and now - self._said_checked >= 0.5:
+            self._said_checked = now
+            self._forget_silent(now)
 
     def ready(self, agents: list[int], t_plan_s: float, tolerance_s: float, plans: tuple[int, ...]) -> bool:
         """Whether every agent in ``agents`` has an estimate of one of ``plans`` for plan time
@@ -512,7 +525,8 @@ class Bus:
             seq, stamp, t_plan, status, plan, t_rx, xi
         self.counters["estimates"] += 1
 
-    def _status(self, key: str, data: bytes) -> None:
+    def _status(self, key: str, data: bytes, t_rx_s: float) -> None:
+        """A status, taken at ``t_rx_s`` [s, monotonic]."""
         parsed = _parse_status(key, data)
         if parsed is None or not 1 <= parsed[0] <= self.n_agents:
             self.counters["drop_bad_status"] += 1
@@ -522,6 +536,19 @@ class Bus:
         if self.statuses.get(agent) != (status, plan):
             self.statuses[agent] = (status, plan)
             self.changes += 1
+        if agent not in self._tokens and agent not in self.members:  # (its token never came: alive while it speaks)
+            if agent not in self.alive:
+                self.alive.add(agent)
+                self.changes += 1
+            self._said_at[agent] = t_rx_s
+
+    def _forget_silent(self, now_s: float) -> None:
+        """The agents alive by their statuses alone that have said nothing for STATUS_ALIVE_S."""
+        for agent in [a for a, at in self._said_at.items() if now_s - at > STATUS_ALIVE_S]:
+            del self._said_at[agent]
+            self.alive.discard(agent)
+            self.statuses.pop(agent, None)
+            self.changes += 1
 
     def _alive(self, key: str, present: bool) -> None:
         agent = agent_of_key(key)
@@ -530,6 +557,8 @@ class Bus:
             return
         if present:
             self.alive.add(agent)
+            self._tokens.add(agent)
+            self._said_at.pop(agent, None)
         elif agent not in self.members:
             self.alive.discard(agent)
             self.statuses.pop(agent, None)

@@ -269,3 +269,30 @@ def test_estimates_still_arrive_when_the_udp_path_dies(tmp_path):
     assert missing, "nothing was lost after the cut: the cut did not cut the estimates' path"
     assert not [seq for seq in missing if seq % COPY_EVERY == 0], \
         f"copies lost after the cut (seq after {r['cut_after_seq']}): {missing}"
+
+
+def test_an_agent_whose_token_never_came_is_alive_while_it_speaks():
+    """Zenoh has been seen to lose a liveliness token's declaration for a whole flight while the
+    agent flew and said so (an agent held at every graph that needed it): such an agent is alive
+    while its statuses come, and STATUS_ALIVE_S after the last one it is not. One whose token came
+    is judged by its token alone: a status after its token went does not bring it back."""
+    from triswarm.companion.bus import STATUS_ALIVE_S
+
+    bus = Bus("s", 3)
+
+    def status(agent: int, t_s: float) -> None:
+        bus._status(status_key("s", agent), json.dumps({"agent": agent, "plan": 5, "status": "FLYING", "reason": "",
+                                                         "since": 0.0, "t": 0.0}).encode(), t_s)
+
+    status(2, 10.0)
+    assert bus.alive == {2} and bus.status_of(2, (5,)) == AgentStatus.FLYING
+    status(2, 11.0)
+    bus._forget_silent(11.0 + STATUS_ALIVE_S)
+    assert bus.alive == {2}
+    changes = bus.changes
+    bus._forget_silent(11.0 + STATUS_ALIVE_S + 0.1)
+    assert bus.alive == set() and bus.status_of(2, (5,)) is None and bus.changes > changes
+    bus._alive(alive_key("s", 3), True)
+    bus._alive(alive_key("s", 3), False)
+    status(3, 20.0)  # (late, after its token went)
+    assert 3 not in bus.alive
