@@ -125,8 +125,10 @@ class ControlLoop:
     # -- the run ------------------------------------------------------------------------------------
 
     def _run(self, agents: list) -> None:
-        late = [self.waiting.pop(a) for a in agents if a in self.waiting]
-        if late:  # a new sample before the neighbours came: act now on what there is
+        # a new sample before the neighbours came: act now on what there is. (Only a new sample: a
+        # read that brought none, a HEARTBEAT or a state offered again, leaves the wait as it is.)
+        late = [self.waiting.pop(a) for a in agents if a in self.waiting and a.fc.backlog]
+        if late:
             self._finish(late)
         for bus in self._buses:
             bus.drain()

@@ -231,3 +231,37 @@ def test_a_neighbour_counts_on_its_fresh_estimates_even_without_its_liveliness()
     fc.answers.lockstep = False
     estimates[2].plan_id = plan + 1  # another plan's estimates are no sign of this plan's neighbour
     assert not flight.usable(2)
+
+
+def test_only_a_new_sample_ends_a_wait_for_the_neighbours():
+    """A tick waiting for its neighbours' estimates acts on what there is when its flight controller
+    sends a new sample (real time: the next period has come). Any other read of that link (a
+    HEARTBEAT, a state the lockstep offers again) leaves the wait as it is: acting then made two
+    lockstep runs differ on a loaded machine, the wait cut short by a heartbeat in one of them."""
+    import asyncio
+    from collections import deque
+    from types import SimpleNamespace
+
+    from triswarm.companion.loop import ControlLoop
+
+    loop = asyncio.new_event_loop()
+    try:
+        ctl = ControlLoop(loop, 1)
+        finished, settled = [], []
+        ctl._finish = finished.append
+        fc = SimpleNamespace(backlog=deque(), settle=settled.append, take_woke=lambda: False)
+        class Agent:  # (hashable, as the loop's agents are)
+            clock_broke = staticmethod(lambda s: True)  # (the new sample itself is not flown here)
+
+        agent = Agent()
+        agent.fc = fc
+        tick = SimpleNamespace(agent=agent, next_wall=time.monotonic() + 60.0)
+        ctl.waiting[agent] = tick
+        ctl._run([agent])  # a read with no new sample
+        assert ctl.waiting == {agent: tick} and not finished and settled == [True]
+        fc.backlog.append(SimpleNamespace())  # a new sample
+        ctl._run([agent])
+        assert not ctl.waiting and finished == [[tick]] and settled[-1] is False
+        ctl.close()
+    finally:
+        loop.close()
