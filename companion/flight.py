@@ -390,9 +390,12 @@ class Flight:
                                       LOCKSTEP_GRACE_S if self.fc.answers.lockstep else 0.0)
 
     def _alive(self, j: int) -> bool:
-        """Agent j's token is there, or it went but j counts as alive for its grace (lockstep)."""
+        """Agent j's token is there, or it went but j counts as alive for its grace (lockstep): only
+        an agent this one does not listen to, whose token is all it has of it. (A neighbour's own
+        estimates are its sign of life, and the lockstep wait does not wait for a neighbour whose
+        token went: waiting out a dead one's grace raced the SITL's watchdog of this companion.)"""
         kept = self._liveliness_kept()  # (every time: it sees each change of the bus's set)
-        return j in self.bus.alive or j in kept
+        return j in self.bus.alive or (j in kept and j not in self.listen_to)
 
     def usable(self, j: int, check_fresh: bool = True) -> bool:
         """Agent j counts: alive, flying this plan, and (for a neighbour whose estimates we get)

@@ -5,9 +5,9 @@ On a real vehicle that is what a lost neighbour looks like, and it is taken as i
 the flight runs on the simulators' clock, and a machine that starves a process for a second expires
 its lease while, on that clock, nothing has happened: the clock stands until the starved process
 answers. So in lockstep a token that went counts as gone only once ``grace_s`` of plan time has run
-since this agent saw it go; a neighbour back within that time was never absent. (A neighbour that
-really died stops publishing: those that listen to it wait for its estimates, and the control loop's
-watchdog counts it absent; its token's going is confirmed once the clock runs on.)
+since this agent saw it go; an agent back within that time was never absent. The flight applies it
+to the agents it does not listen to, whose token is all it has of them (``Flight._alive``): a
+neighbour's own estimates are its sign of life.
 """
 
 from __future__ import annotations

@@ -335,12 +335,11 @@ class ControlLoop:
         self._arm_timer()
 
     def _lockstep_recheck(self, t: Tick, now: float) -> bool:
-        """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness,
-        after its grace, and status tell), and the live ones from which no new estimate has come for
-        NB_WATCHDOG_S of wall time in which this process ran (hung, or dead in their grace), saying
-        so. The silence is a neighbour's, from its newest estimate on (from the wait's start for one
-        never heard): not each tick's, or a dead neighbour would cost each tick a wait. True when the
-        rest are in."""
+        """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness
+        and status tell), and the live ones from which no new estimate has come for NB_WATCHDOG_S of
+        wall time in which this process ran (hung), saying so. The silence is a neighbour's, from its
+        newest estimate on (from the wait's start for one never heard), not each tick's: a hung
+        neighbour costs one wait, not one per tick. True when the rest are in."""
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
