@@ -74,8 +74,13 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
             asked = rec.now()
             landing = command_all(link, [1, 2, 3], COMP_ONBOARD, MAV.MAV_CMD_NAV_LAND, [])
             down_s = (6.0 + LAND_SINK_M) / LAND_SPEED + LAND_DETECT_S + 5.0
-            poll(lambda: all(modes(rec, i) and not modes(rec, i)[-1][2] for i in (1, 2, 3)), down_s + 30.0,
-                 "the three disarmed", every_s=0.5)
+            try:
+                poll(lambda: all(modes(rec, i) and not modes(rec, i)[-1][2] for i in (1, 2, 3)), down_s + 30.0,
+                     "the three disarmed", every_s=0.5)
+            except AssertionError as exc:
+                said = [line for line in stack.log("companion-1").splitlines() if "companion " in line]
+                raise AssertionError(f"{exc}; flight over [{t_from}, {plan.duration_s}] s: {report}; "
+                                     f"the companions said:\n" + "\n".join(said[-40:])) from None
         disarmed = rec.now()
         history = {i: modes(rec, i) for i in (1, 2, 3)}
         heights = {i: rec.samples.tracks(start)[i].position_m[-1][2] for i in (1, 2, 3)}
