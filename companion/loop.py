@@ -73,8 +73,11 @@ class ControlLoop:
         self._buses: set = set()
         self._agents = agents
         self.stalls = Stalls(period_s=LOCKSTEP_RECHECK_S)
-        """Lockstep: this process's own stalls, seen by the looks at who is alive, are not counted as
-        a neighbour's silence."""
+        """Lockstep: this process's own stalls are not counted as a neighbour's silence. Looked at
+        with every batch of ticks and every look at who is alive while one waits: a gap longer than
+        that (the process stopped, or idle while the flight controllers' clock stood) counts as a
+        stall. (Looked at only while waiting, the first look after a stall that began in a wait
+        had nothing to compare with: a neighbour whose state came in the stall counted as hung.)"""
 
     def watch(self, bus) -> None:
         """Estimates arriving on ``bus`` may complete waiting ticks."""
@@ -256,6 +259,7 @@ class ControlLoop:
     def _wait(self, ticks: list[Tick]) -> None:
         ready = []
         now = time.monotonic()
+        self.stalls.look(now)
         for t in ticks:
             a = t.agent
             try:

@@ -264,3 +264,54 @@ def test_only_a_new_sample_ends_a_wait_for_the_neighbours():
         ctl.close()
     finally:
         loop.close()
+
+
+def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
+    """Lockstep: a tick waits for neighbour 1's estimate; the whole machine stops for 6.5 s (longer
+    than NB_WATCHDOG_S); at the wake the loop's first look at who is alive must see the stall and
+    count the neighbour's silence from the wake, not from its last estimate (which came before the
+    stall): a neighbour whose state came during the stall is not hung. A neighbour that then stays
+    silent for NB_WATCHDOG_S of looks is still counted absent."""
+    import asyncio
+    from types import SimpleNamespace
+
+    from triswarm.companion import loop as loop_mod
+    from triswarm.companion.loop import LOCKSTEP_RECHECK_S, NB_WATCHDOG_S, ControlLoop
+
+    clock = {"mono": 100.0, "unix": 1.8e9}
+    monkeypatch.setattr(loop_mod, "time", SimpleNamespace(monotonic=lambda: clock["mono"], time=lambda: clock["unix"]))
+
+    def advance(s: float) -> None:
+        clock["mono"] += s
+        clock["unix"] += s
+
+    warnings: list[str] = []
+
+    class Agent:  # (hashable, as the loop's agents are)
+        lockstep, nb_wait_s, dt_s = True, 0.05, 0.005
+        in_neighbours = {"chain": [1]}
+        topology_at = staticmethod(lambda t_p: SimpleNamespace(name="chain"))
+        estimates_in = staticmethod(lambda agents, t_p: not agents)
+        flight = SimpleNamespace(usable=lambda j, check_fresh=True: True, silent={})
+        bus = SimpleNamespace(estimates={1: SimpleNamespace(received_at=clock["unix"] - 0.005)})
+        fc = SimpleNamespace(settle=lambda woke: None)
+        log = SimpleNamespace(warning=warnings.append)
+
+    agent = Agent()
+    loop = asyncio.new_event_loop()
+    try:
+        ctl = ControlLoop(loop, 1)
+        ctl._finish = lambda ticks: None
+        tick = SimpleNamespace(agent=agent, t_p=20.34)
+        ctl._wait([tick])
+        assert ctl.waiting == {agent: tick}
+        advance(6.5)  # the machine stopped
+        ctl._timeout()
+        assert not agent.flight.silent and not warnings, warnings
+        for _ in range(round((NB_WATCHDOG_S + 0.2) / LOCKSTEP_RECHECK_S)):  # then regular looks, no estimate
+            advance(LOCKSTEP_RECHECK_S)
+            ctl._timeout()
+        assert 1 in agent.flight.silent and len(warnings) == 1, (agent.flight.silent, warnings)
+        ctl.close()
+    finally:
+        loop.close()
