@@ -22,7 +22,8 @@ simulator's clock in lockstep.
 A dead flight controller's clock stops with it, so a lost flight controller is told on the wall
 clock: nothing heard from it for FC_SILENT_S (``watch_fc``, once a second). A clock that broke (its
 boot time back by REBOOT_JUMP_US or more: a reboot; or ahead of the wall clock by CLOCK_JUMP_US) is
-told at the sample that shows it (``clock_broke``, before the sample is flown). Either way the agent
+told once CLOCK_BREAK_SAMPLES samples in a row show it (``clock_broke``; those samples are not flown,
+and one alone is dropped as a stale or future stamp, counted). Either way the agent
 is LOST: it commands nothing and says so; once the flight controller is heard again it is set up as
 a new one (its parameters, streams and clock) and the flight resumes as after a restart
 (``take_fc_back``).
@@ -69,6 +70,12 @@ REPUBLISH_AFTER_S = 1.0
 CLOCK_JUMP_US = REBOOT_JUMP_US
 """A sample whose boot time ran this much further [us] than the wall clock since the one before:
 the flight controller's clock jumped."""
+CLOCK_BREAK_SAMPLES = 3
+"""A broken clock is believed once this many samples in a row show it, running on from each other
+(a rebooted flight controller's stream does, within milliseconds); samples that show it and are
+followed by one on the old clock were stamps out of place (a hostile message, a frame corrupted past
+its checksum) and are dropped, counted as ``samples_off_the_clock``: one message must not take the
+vehicle's control down."""
 
 
 class StartupError(CompanionError):
@@ -132,7 +139,8 @@ class Agent:
         self.stalls = Stalls(period_s=1.0)
         """This process's own stalls, seen by the once-a-second work: not counted as the flight
         controller's silence."""
-        self._last_boot: tuple[int, float] | None = None  # (boot ms, monotonic s) of the newest sample looked at
+        self._last_boot: tuple[int, float] | None = None  # (boot us, monotonic s) of the newest sample on the clock
+        self._off_clock: list[tuple[int, float]] = []  # the samples since, in a row, that show it broken
         self._told_plans: set[tuple[int, object]] = set()
         self._told_clock_step: int | None = None
 
@@ -412,22 +420,32 @@ class Agent:
             self._fc_back = asyncio.ensure_future(self.take_fc_back())
 
     def clock_broke(self, s) -> bool:
-        """Whether sample ``s`` shows the flight controller's clock broken (then the agent is lost,
-        and the sample is not flown): its boot time REBOOT_JUMP_US or more behind the newest (a
-        reboot), or ahead of the wall clock's time since by more than CLOCK_JUMP_US."""
+        """Whether sample ``s`` is not to be flown because it shows the flight controller's clock
+        broken: its boot time REBOOT_JUMP_US or more behind the newest (a reboot), or ahead of the
+        wall clock's time since by more than CLOCK_JUMP_US. Once CLOCK_BREAK_SAMPLES in a row show
+        it, running on from each other, the agent is lost; a sample on the old clock after fewer
+        drops them as stamps out of place."""
         now = time.monotonic()
-        last, self._last_boot = self._last_boot, (s.boot_us, now)
-        if last is None or self.fc_lost_since is not None:
+        if self.fc_lost_since is not None:
+            self._last_boot, self._off_clock = (s.boot_us, now), []
             return False
-        back_us = last[0] - s.boot_us
-        ahead_us = s.boot_us - last[0] - 1e6 * (now - last[1])
-        if back_us >= REBOOT_JUMP_US:
-            self.fc_lost(f"its clock went back {back_us / 1e6:.3f} s (it rebooted)")
-        elif ahead_us > CLOCK_JUMP_US:
-            self.fc_lost(f"its clock jumped {ahead_us / 1e6:.3f} s ahead of the wall clock")
-        else:
+        reason = None if self._last_boot is None else _clock_break(self._last_boot, s.boot_us, now)
+        if reason is None:
+            self._last_boot = (s.boot_us, now)
+            self._drop_off_clock()
             return False
+        if self._off_clock and _clock_break(self._off_clock[-1], s.boot_us, now) is not None:
+            self._drop_off_clock()  # (they do not run on to this one: not one new clock)
+        self._off_clock.append((s.boot_us, now))
+        if len(self._off_clock) >= CLOCK_BREAK_SAMPLES:
+            self._last_boot, self._off_clock = (s.boot_us, now), []
+            self.fc_lost(reason)
         return True
+
+    def _drop_off_clock(self) -> None:
+        if self._off_clock:
+            self.fc.assembler.counters["samples_off_the_clock"] += len(self._off_clock)
+            self._off_clock = []
 
     def fc_lost(self, reason: str) -> None:
         """Command nothing (its own failsafe flies the vehicle) until the flight controller is back."""
@@ -445,7 +463,7 @@ class Agent:
         try:
             self.say("flight controller heard again: setting it up anew")
             fc.forget()
-            self._last_boot = None
+            self._last_boot, self._off_clock = None, []
             await self._setup_fc()
             self.fc_lost_since = None
             m = self.plans.mission
@@ -504,3 +522,15 @@ def default_start_time(now: float) -> float:
     """Companions started together agree without talking: the next multiple of 10 s at least 5 s ahead."""
     return math.ceil((now + 5.0) / 10.0) * 10.0
 
+
+def _clock_break(last: tuple[int, float], boot_us: int, now_s: float) -> str | None:
+    """Why a sample stamped ``boot_us`` at ``now_s`` [s, monotonic] breaks the clock of the one
+    ``last`` (boot us, monotonic s), or None: back REBOOT_JUMP_US or more (a reboot), or ahead of
+    the wall clock's time since by more than CLOCK_JUMP_US."""
+    back_us = last[0] - boot_us
+    ahead_us = boot_us - last[0] - 1e6 * (now_s - last[1])
+    if back_us >= REBOOT_JUMP_US:
+        return f"its clock went back {back_us / 1e6:.3f} s (it rebooted)"
+    if ahead_us > CLOCK_JUMP_US:
+        return f"its clock jumped {ahead_us / 1e6:.3f} s ahead of the wall clock"
+    return None

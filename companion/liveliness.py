@@ -25,6 +25,7 @@ class Liveliness:
         self._ever: set[int] = set()
         self._gone_at: dict[int, float] = {}
         self._changes = -1
+        self._asked: tuple[float, float] | None = None
 
     def update(self, alive: set[int], changes: int, t_plan_s: float, grace_s: float) -> frozenset[int]:
         """Take the bus's ``alive`` set (``changes``: its count of changes, so that an unchanged set
@@ -37,6 +38,9 @@ class Liveliness:
             for j in alive:
                 self._gone_at.pop(j, None)
             self._ever |= alive
+        elif (t_plan_s, grace_s) == self._asked:
+            return self.kept  # (asked again within one tick: nothing can have changed)
+        self._asked = (t_plan_s, grace_s)
         if not self._gone_at or grace_s <= 0.0:
             self.kept = frozenset()
         else:

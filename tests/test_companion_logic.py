@@ -315,3 +315,38 @@ def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
         ctl.close()
     finally:
         loop.close()
+
+
+def test_one_stamp_out_of_place_is_dropped_and_a_reboot_is_still_found():
+    """A sample stamped far behind the flight controller's clock, or far ahead of it, is not flown;
+    if the next one is on the old clock it was a stamp out of place (a hostile or corrupted
+    message): dropped and counted, and the flight controller is not lost. A rebooted flight
+    controller, whose samples all run on a new clock, is lost at the CLOCK_BREAK_SAMPLES-th."""
+    from collections import Counter
+    from types import SimpleNamespace
+
+    from triswarm.companion.agent import CLOCK_BREAK_SAMPLES, Agent
+
+    def agent():
+        a = SimpleNamespace(fc_lost_since=None, _last_boot=None, _off_clock=[], lost=[],
+                            fc=SimpleNamespace(assembler=SimpleNamespace(counters=Counter())))
+        a.fc_lost = lambda reason: (a.lost.append(reason), setattr(a, "fc_lost_since", 1.0))
+        a._drop_off_clock = lambda: Agent._drop_off_clock(a)
+        return a
+
+    def broke(a, boot_s: float) -> bool:
+        return Agent.clock_broke(a, SimpleNamespace(boot_us=round(boot_s * 1e6)))
+
+    for stray_s in (1.0, 0.0, 60.0):  # behind (a reboot's look, at 0 too), far ahead
+        a = agent()
+        assert [broke(a, t) for t in (10.000, 10.005)] == [False, False]
+        assert broke(a, stray_s) is True  # (not flown)
+        assert broke(a, 10.010) is False and not a.lost
+        assert a.fc.assembler.counters["samples_off_the_clock"] == 1
+    a = agent()  # strays that do not run on from each other are not a new clock
+    assert [broke(a, t) for t in (10.000, 1.0, 5.0, 0.5)] == [False, True, True, True] and not a.lost
+    a = agent()  # a reboot: the old clock stops, the new one runs
+    assert [broke(a, t) for t in (10.000, 10.005)] == [False, False]
+    new_clock = [broke(a, 0.020 + 0.005 * k) for k in range(CLOCK_BREAK_SAMPLES)]
+    assert new_clock == [True] * CLOCK_BREAK_SAMPLES and len(a.lost) == 1 and "went back" in a.lost[0]
+    assert not a.lost[:-1] and broke(a, 0.020 + 0.005 * CLOCK_BREAK_SAMPLES) is False  # (lost: taken as it comes)

@@ -130,7 +130,9 @@ class Mutator:
         return kind, self.make(kind)
 
     def template(self):
-        return self.rng.choice(self.templates)
+        """A template: a message, or a callable that makes one now (a stamp on the peer's clock)."""
+        chosen = self.rng.choice(self.templates)
+        return chosen() if callable(chosen) else chosen
 
     def frame(self, msg=None, codec=None) -> bytes:
         return (msg or self.template()).pack(codec or self.codec)

@@ -12,6 +12,7 @@ the oracle: at the end the link's drop and refusal counters must equal the model
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 from pathlib import Path
 
 from triswarm.companion.ground_station import UNSIGNED_FROM_GCS
@@ -25,6 +26,9 @@ from .values import COMPANION_PARAMS
 BATCH = 64
 AGENT = 1
 FUZZ_KEY = bytes(range(1, 33))
+OUT_OF_ORDER_MS = 300
+"""How far before the flight controller's clock the fuzz stamps some attitudes [ms] (the companion takes
+a stamp up to 1 s back as out of order, further back as a rebooted clock)."""
 
 
 def gcs_templates(codec) -> list:
@@ -49,10 +53,17 @@ def gcs_templates(codec) -> list:
                                            0, 0, 0, 0, 0, 0)]
 
 
-def fc_templates(codec) -> list:
-    """What a flight controller (system 1, component 1) sends its companion."""
+def fc_templates(codec, boot_ms: Callable[[], int] | None = None) -> list:
+    """What a flight controller (system 1, component 1) sends its companion. With ``boot_ms`` (the
+    flight controller's clock), attitudes stamped a little before its newest telemetry too: out of
+    order, whenever the fuzz comes (a fixed stamp falls a second behind the clock during the set-up,
+    where the companion takes it for the clock of a rebooted flight controller)."""
     q = [1.0, 0.0, 0.0, 0.0]
-    return [M.MAVLink_heartbeat_message(M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_GENERIC,
+    late = [] if boot_ms is None else [
+        lambda: M.MAVLink_attitude_message(max(0, boot_ms() - OUT_OF_ORDER_MS), 0.0, 0.0, 0.1, 0.0, 0.0, 0.0),
+        lambda: M.MAVLink_attitude_quaternion_message(max(0, boot_ms() - OUT_OF_ORDER_MS), *q, 0.0, 0.0, 0.0, [0.0] * 4)]
+    return late + [
+            M.MAVLink_heartbeat_message(M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_GENERIC,
                                         M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 2, M.MAV_STATE_STANDBY, 3),
             M.MAVLink_attitude_message(1000, 0.0, 0.0, 0.1, 0.0, 0.0, 0.0),
             M.MAVLink_local_position_ned_message(1000, 1.0, -1.0, -2.0, 0.0, 0.0, 0.0),
@@ -96,6 +107,8 @@ def _finish(report: Report, cuf: CompanionUnderFuzz, link: str, model: LinkModel
     report.other = {"rx": counters.get("rx", 0), **{f"telemetry.{k}": n for k, n in stats["telemetry"].items()}}
     report.compare()
     report.problems += [f"crash: {c}" for c in crashes(cuf.log_tail(10**7))]
+    if stats["phase"] == "lost":  # (a stamp out of place is dropped, not taken for a reboot: agent.clock_broke)
+        report.problems.append("the companion counts its flight controller lost after the fuzz")
     return report
 
 
@@ -124,7 +137,7 @@ def fuzz_fc(n: int, workdir: Path, seed: int = 2) -> Report:
         fc = cuf.fc
         model = LinkModel(AGENT, COMP_ONBOARD)
         fc.tap = model.feed  # (from here on: before it, the link took only valid telemetry)
-        mutator = Mutator(random.Random(seed), fc_templates(fc.codec), fc.codec, target=(AGENT, COMP_ONBOARD))
+        mutator = Mutator(random.Random(seed), fc_templates(fc.codec, fc.boot_ms), fc.codec, target=(AGENT, COMP_ONBOARD))
         _fuzz(report, fc, mutator, n, lambda: fc.probe(AGENT, source=(42, 1)))
         if not (cuf.alive() and fc.probe(AGENT, source=(42, 1)) and cuf.station.probe(AGENT)):
             report.problems.append("the companion does not answer a valid request after the fuzz")
