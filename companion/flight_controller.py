@@ -189,7 +189,7 @@ class FlightController:
         asm = self.assembler
         if t in ATTITUDE_SOURCES and self._preferred(t, ATTITUDE_SOURCES, t_us):
             self.answers.telemetry(t_us)  # (the attitude is what a tick, and so an answer, is of)
-            asm.take_attitude(t_us, *attitude_of(msg))
+            asm.take_attitude(t_us, *attitude_of(msg), t_rx)
         if t in POSITION_SOURCES and self._preferred(t, POSITION_SOURCES, t_us):
             state = position_of(msg)
             if state is None:
@@ -197,9 +197,9 @@ class FlightController:
             else:
                 (x, y, z), velocity = state
                 dx, dy, dz = self.offset_e_m
-                asm.take_position(t_us, (x + dx, y + dy, z + dz), velocity)
+                asm.take_position(t_us, (x + dx, y + dy, z + dz), velocity, t_rx)
         if t == "HIGHRES_IMU":
-            asm.take_gyro(t_us, gyro_of(msg))
+            asm.take_gyro(t_us, gyro_of(msg), t_rx)
         s = asm.sample(t_rx)
         if s is not None:
             self._sample(s)

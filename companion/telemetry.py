@@ -34,6 +34,12 @@ from triswarm.protocol.mavlink import mavlink
 
 REBOOT_JUMP_US = 1_000_000
 """A stamp this much older than the newest of its stream is a restarted flight controller."""
+AHEAD_US = 100_000
+"""A stamp that runs this much further [us] than the wall clock since its stream's newest is held:
+taken once the next one runs on from it; dropped (counted, ``<stream>_stamp_out_of_place``) if the
+next one is on the stream's clock (a hostile message, a frame corrupted past its checksum). Taken at
+its word, one stamp ahead would make the true ones out of order for up to REBOOT_JUMP_US, and the
+loop would tick on nothing meanwhile."""
 MAX_POSITION_AGE_US = 250_000
 """A position older than this at a tick is not used: the observer runs on its model meanwhile."""
 NAN3 = (math.nan, math.nan, math.nan)
@@ -95,29 +101,46 @@ class Sample:
 
 
 class _Stream:
-    __slots__ = ("t_us", "value", "count", "first_us")
+    __slots__ = ("t_us", "value", "count", "first_us", "t_rx", "held")
 
     def __init__(self) -> None:
         self.t_us = -1
         self.value = None
         self.count = 0
         self.first_us = -1
+        self.t_rx = 0.0
+        self.held: tuple | None = None  # (t_us, value, t_rx) of a stamp ahead, until the next one decides
 
-    def take(self, t_us: int, value, counters: Counter, name: str) -> bool:
-        """Keep (t_us, value) if it is the newest (or the first of a restarted clock); False (and
-        counted) if it is out of order."""
+    def take(self, t_us: int, value, counters: Counter, name: str, t_rx: float) -> bool:
+        """Keep (t_us, value) received at ``t_rx`` [s] if it is the newest (or the first of a
+        restarted clock); dropped (and counted) if it is out of order; held if it runs ahead
+        (``AHEAD_US``). True if a newer value is kept now."""
+        kept = False
+        held, self.held = self.held, None
+        if held is not None:
+            if 0 <= t_us - held[0] <= 1e6 * (t_rx - held[2]) + AHEAD_US:  # (this one runs on from it)
+                self._keep(*held)
+                kept = True
+            else:
+                counters[f"{name}_stamp_out_of_place"] += 1
         if 0 <= t_us < self.t_us:
             if t_us >= self.t_us - REBOOT_JUMP_US:
                 counters[f"{name}_out_of_order"] += 1
-                return False
+                return kept
             self.count, self.first_us = 0, -1
-        if t_us == self.t_us:
-            return False
-        self.t_us, self.value = t_us, value
+        elif self.t_us >= 0 and t_us - self.t_us > 1e6 * (t_rx - self.t_rx) + AHEAD_US:
+            self.held = (t_us, value, t_rx)
+            return kept
+        if t_us != self.t_us:
+            self._keep(t_us, value, t_rx)
+            kept = True
+        return kept
+
+    def _keep(self, t_us: int, value, t_rx: float) -> None:
+        self.t_us, self.value, self.t_rx = t_us, value, t_rx
         if self.first_us < 0:
             self.first_us = t_us
         self.count += 1
-        return True
 
     def rate_hz(self) -> float:
         """Messages per second of the flight controller's clock since the first (NaN: too few)."""
@@ -136,16 +159,16 @@ class Assembler:
         self.gyro = _Stream()       # rates
         self._sampled_us = -1
 
-    def take_attitude(self, t_us: int, eta_rad: tuple, rate_b_rad_s: tuple | None) -> None:
+    def take_attitude(self, t_us: int, eta_rad: tuple, rate_b_rad_s: tuple | None, t_rx: float) -> None:
         if self.attitude.t_us >= 0 and t_us < self.attitude.t_us - REBOOT_JUMP_US:
             self.restart()
-        self.attitude.take(t_us, (eta_rad, rate_b_rad_s), self.counters, "attitude")
+        self.attitude.take(t_us, (eta_rad, rate_b_rad_s), self.counters, "attitude", t_rx)
 
-    def take_position(self, t_us: int, position_e_m: tuple, velocity_e_m_s: tuple) -> None:
-        self.position.take(t_us, (position_e_m, velocity_e_m_s), self.counters, "position")
+    def take_position(self, t_us: int, position_e_m: tuple, velocity_e_m_s: tuple, t_rx: float) -> None:
+        self.position.take(t_us, (position_e_m, velocity_e_m_s), self.counters, "position", t_rx)
 
-    def take_gyro(self, t_us: int, rate_b_rad_s: tuple) -> None:
-        self.gyro.take(t_us, rate_b_rad_s, self.counters, "gyro")
+    def take_gyro(self, t_us: int, rate_b_rad_s: tuple, t_rx: float) -> None:
+        self.gyro.take(t_us, rate_b_rad_s, self.counters, "gyro", t_rx)
 
     def restart(self) -> None:
         """A restarted flight controller: its clock starts again, and so does every stream."""

@@ -39,9 +39,9 @@ def fly(att_hz: float, pos_hz: float, pos_offset_us: int = 0, duration_s: float 
     a, samples = Assembler(), []
     for t, kind in order(msgs):
         if kind == "att":
-            a.take_attitude(t, eta(t), (0.01, 0.02, 0.03))
+            a.take_attitude(t, eta(t), (0.01, 0.02, 0.03), t * 1e-6)
         else:
-            a.take_position(t, *truth(t))
+            a.take_position(t, *truth(t), t * 1e-6)
         s = a.sample(t_rx=t * 1e-6)
         if s is not None:
             samples.append(s)
@@ -120,24 +120,24 @@ def test_out_of_order_stamps_are_dropped_and_counted():
 def test_a_restarted_flight_controller_starts_every_stream_again():
     a = Assembler()
     for t in (5_000_000, 5_005_000):
-        a.take_position(t, *truth(t))
-        a.take_attitude(t, eta(t), None)
+        a.take_position(t, *truth(t), t * 1e-6)
+        a.take_attitude(t, eta(t), None, t * 1e-6)
         assert a.sample(0.0).boot_us == t
-    a.take_attitude(1_000, eta(1_000), None)  # the clock jumped back 5 s: a reboot
+    a.take_attitude(1_000, eta(1_000), None, 5.01)  # the clock jumped back 5 s: a reboot
     assert a.counters["fc_clock_restarted"] == 1
     assert a.sample(0.0) is None  # no position of the new clock yet
-    a.take_position(1_000, *truth(1_000))
+    a.take_position(1_000, *truth(1_000), 5.01)
     s = a.sample(0.0)
     assert s.boot_us == 1_000 and s.position_lag_us == 0
 
 
 def test_rates_from_the_attitude_message_else_the_gyro():
     a = Assembler()
-    a.take_position(0, *truth(0))
-    a.take_gyro(0, (0.5, 0.6, 0.7))
-    a.take_attitude(0, eta(0), None)  # (an attitude message without rates)
+    a.take_position(0, *truth(0), 0.0)
+    a.take_gyro(0, (0.5, 0.6, 0.7), 0.0)
+    a.take_attitude(0, eta(0), None, 0.0)  # (an attitude message without rates)
     assert a.sample(0.0).rate_b_rad_s == (0.5, 0.6, 0.7)
-    a.take_attitude(5_000, eta(5_000), (0.1, 0.2, 0.3))
+    a.take_attitude(5_000, eta(5_000), (0.1, 0.2, 0.3), 0.005)
     assert a.sample(0.0).rate_b_rad_s == (0.1, 0.2, 0.3)
 
 
@@ -196,3 +196,28 @@ def test_an_odometry_in_frames_not_flown_on_is_not_read():
         1_000_000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 1.0, 2.0, 3.0, [1, 0, 0, 0], 0, 0, 0,
         0, 0, 0, [math.nan] * 21, [math.nan] * 21))
     assert position_of(odom) is None
+
+
+def test_one_stamp_ahead_is_held_and_dropped_when_the_clock_goes_on_without_it():
+    """A message stamped 0.8 s ahead of its stream (a hostile one, a frame corrupted past its
+    checksum) is held, not taken: the next one, on the stream's clock, drops it (counted), and no
+    sample is made of it. Taken, it would have made every true message out of order for 0.8 s.
+    A stream that truly jumps ahead (its next message runs on from the jump) is taken one message
+    late."""
+    a = Assembler()
+    t_rx = lambda t: t * 1e-6  # noqa: E731  (received as stamped)
+    instants = []
+    for k, t in enumerate(range(0, 100_000, 5_000)):
+        if k == 10:
+            a.take_attitude(t + 800_000, eta(t + 800_000), None, t_rx(t))  # the stamp out of place
+        a.take_position(t, *truth(t), t_rx(t))
+        a.take_attitude(t, eta(t), None, t_rx(t))
+        s = a.sample(t_rx(t))
+        instants.append(None if s is None else s.boot_us)
+    assert instants == list(range(0, 100_000, 5_000))
+    assert a.counters["attitude_stamp_out_of_place"] == 1 and not a.counters["attitude_out_of_order"]
+    jump = 400_000  # a true jump: the clock runs on from it
+    for t in (100_000 + jump, 105_000 + jump):
+        a.take_position(t, *truth(t), 0.1)
+        a.take_attitude(t, eta(t), None, 0.1)
+    assert a.sample(0.1).boot_us == 105_000 + jump and a.counters["attitude_stamp_out_of_place"] == 1
