@@ -15,8 +15,10 @@ So the companion takes each stream as it comes:
 A sample whose newest position is older than ``MAX_POSITION_AGE_US`` has no position (NaN): the
 observer then runs on its model, and the companion says that the stream stopped. Messages older
 than the newest of their stream (out of order) are dropped and counted; the same instant again
-(a simulator offering its state again) makes no new tick. A jump of more than REBOOT_JUMP back is
-a flight controller that restarted: every stream starts again.
+(a simulator offering its state again) makes no new tick. A stamp REBOOT_JUMP_US or more back, or
+ahead by more than the wall clock ran (``AHEAD_US``), is held until the stream's next message
+decides: running on from it, it is a new clock (a flight controller that restarted: every stream
+starts again) or a jump; else it was out of place, and is dropped and counted.
 
 Times are the flight controller's boot clock in microseconds (ms-stamped messages times 1000).
 No I/O: the flight-controller face (``flight_controller.py``) feeds it parsed messages, read here into the paper's
@@ -35,11 +37,13 @@ from triswarm.protocol.mavlink import mavlink
 REBOOT_JUMP_US = 1_000_000
 """A stamp this much older than the newest of its stream is a restarted flight controller."""
 AHEAD_US = 100_000
-"""A stamp that runs this much further [us] than the wall clock since its stream's newest is held:
-taken once the next one runs on from it; dropped (counted, ``<stream>_stamp_out_of_place``) if the
-next one is on the stream's clock (a hostile message, a frame corrupted past its checksum). Taken at
-its word, one stamp ahead would make the true ones out of order for up to REBOOT_JUMP_US, and the
-loop would tick on nothing meanwhile."""
+"""A stamp that does not run on from its stream's newest (REBOOT_JUMP_US or more behind it, or
+ahead of it by this much [us] more than the wall clock ran since) is held until the stream's next
+message: taken if that one runs on from it (behind: a restarted flight controller's new clock;
+ahead: a jump), dropped and counted (``<stream>_stamp_out_of_place``) if not (a hostile message, a
+frame corrupted past its checksum). Taken at its word, one stamp ahead would have made the true
+ones out of order until the clock caught up with it, and one behind would have restarted every
+stream."""
 MAX_POSITION_AGE_US = 250_000
 """A position older than this at a tick is not used: the observer runs on its model meanwhile."""
 NAN3 = (math.nan, math.nan, math.nan)
@@ -100,6 +104,10 @@ class Sample:
         return self.eta_rad + self.position_e_m
 
 
+NOTHING, NEWER, NEW_CLOCK = 0, 1, 2
+"""What a stream's ``take`` did."""
+
+
 class _Stream:
     __slots__ = ("t_us", "value", "count", "first_us", "t_rx", "held")
 
@@ -111,30 +119,36 @@ class _Stream:
         self.t_rx = 0.0
         self.held: tuple | None = None  # (t_us, value, t_rx) of a stamp ahead, until the next one decides
 
-    def take(self, t_us: int, value, counters: Counter, name: str, t_rx: float) -> bool:
-        """Keep (t_us, value) received at ``t_rx`` [s] if it is the newest (or the first of a
-        restarted clock); dropped (and counted) if it is out of order; held if it runs ahead
-        (``AHEAD_US``). True if a newer value is kept now."""
-        kept = False
+    def take(self, t_us: int, value, counters: Counter, name: str, t_rx: float) -> int:
+        """Take (t_us, value) received at ``t_rx`` [s]: kept if it is the newest, dropped (and
+        counted) if it is out of order, held if it does not run on (``AHEAD_US``). Returns NOTHING,
+        NEWER (a newer value kept) or NEW_CLOCK (the stream started again on a new clock)."""
+        result = NOTHING
         held, self.held = self.held, None
         if held is not None:
-            if 0 <= t_us - held[0] <= 1e6 * (t_rx - held[2]) + AHEAD_US:  # (this one runs on from it)
+            if t_us == held[0]:  # (the same instant again: still undecided)
+                self.held = held
+                return NOTHING
+            if 0 < t_us - held[0] <= 1e6 * (t_rx - held[2]) + AHEAD_US:  # (this one runs on from it)
+                if held[0] < self.t_us:
+                    self.count, self.first_us = 0, -1
+                    result = NEW_CLOCK
+                else:
+                    result = NEWER
                 self._keep(*held)
-                kept = True
             else:
                 counters[f"{name}_stamp_out_of_place"] += 1
-        if 0 <= t_us < self.t_us:
-            if t_us >= self.t_us - REBOOT_JUMP_US:
+        if self.t_us >= 0:
+            if t_us < self.t_us - REBOOT_JUMP_US or t_us - self.t_us > 1e6 * (t_rx - self.t_rx) + AHEAD_US:
+                self.held = (t_us, value, t_rx)
+                return result
+            if t_us < self.t_us:
                 counters[f"{name}_out_of_order"] += 1
-                return kept
-            self.count, self.first_us = 0, -1
-        elif self.t_us >= 0 and t_us - self.t_us > 1e6 * (t_rx - self.t_rx) + AHEAD_US:
-            self.held = (t_us, value, t_rx)
-            return kept
-        if t_us != self.t_us:
-            self._keep(t_us, value, t_rx)
-            kept = True
-        return kept
+                return result
+            if t_us == self.t_us:
+                return result
+        self._keep(t_us, value, t_rx)
+        return result or NEWER
 
     def _keep(self, t_us: int, value, t_rx: float) -> None:
         self.t_us, self.value, self.t_rx = t_us, value, t_rx
@@ -160,9 +174,8 @@ class Assembler:
         self._sampled_us = -1
 
     def take_attitude(self, t_us: int, eta_rad: tuple, rate_b_rad_s: tuple | None, t_rx: float) -> None:
-        if self.attitude.t_us >= 0 and t_us < self.attitude.t_us - REBOOT_JUMP_US:
+        if self.attitude.take(t_us, (eta_rad, rate_b_rad_s), self.counters, "attitude", t_rx) == NEW_CLOCK:
             self.restart()
-        self.attitude.take(t_us, (eta_rad, rate_b_rad_s), self.counters, "attitude", t_rx)
 
     def take_position(self, t_us: int, position_e_m: tuple, velocity_e_m_s: tuple, t_rx: float) -> None:
         self.position.take(t_us, (position_e_m, velocity_e_m_s), self.counters, "position", t_rx)
@@ -171,9 +184,10 @@ class Assembler:
         self.gyro.take(t_us, rate_b_rad_s, self.counters, "gyro", t_rx)
 
     def restart(self) -> None:
-        """A restarted flight controller: its clock starts again, and so does every stream."""
+        """A restarted flight controller (its attitudes run on a new clock): the other streams
+        start again too."""
         self.counters["fc_clock_restarted"] += 1
-        self.attitude, self.position, self.gyro = _Stream(), _Stream(), _Stream()
+        self.position, self.gyro = _Stream(), _Stream()
         self._sampled_us = -1
 
     def sample(self, t_rx: float) -> Sample | None:

@@ -123,12 +123,14 @@ def test_a_restarted_flight_controller_starts_every_stream_again():
         a.take_position(t, *truth(t), t * 1e-6)
         a.take_attitude(t, eta(t), None, t * 1e-6)
         assert a.sample(0.0).boot_us == t
-    a.take_attitude(1_000, eta(1_000), None, 5.01)  # the clock jumped back 5 s: a reboot
+    a.take_attitude(1_000, eta(1_000), None, 5.01)  # the clock jumped back 5 s: held until the next says
+    assert a.counters["fc_clock_restarted"] == 0 and a.sample(0.0) is None
+    a.take_attitude(6_000, eta(6_000), None, 5.015)  # it runs on: a reboot
     assert a.counters["fc_clock_restarted"] == 1
     assert a.sample(0.0) is None  # no position of the new clock yet
-    a.take_position(1_000, *truth(1_000), 5.01)
+    a.take_position(6_000, *truth(6_000), 5.015)
     s = a.sample(0.0)
-    assert s.boot_us == 1_000 and s.position_lag_us == 0
+    assert s.boot_us == 6_000 and s.position_lag_us == 0
 
 
 def test_rates_from_the_attitude_message_else_the_gyro():
@@ -198,12 +200,12 @@ def test_an_odometry_in_frames_not_flown_on_is_not_read():
     assert position_of(odom) is None
 
 
-def test_one_stamp_ahead_is_held_and_dropped_when_the_clock_goes_on_without_it():
+def test_one_stamp_out_of_place_is_held_and_dropped_when_the_clock_goes_on_without_it():
     """A message stamped 0.8 s ahead of its stream (a hostile one, a frame corrupted past its
     checksum) is held, not taken: the next one, on the stream's clock, drops it (counted), and no
-    sample is made of it. Taken, it would have made every true message out of order for 0.8 s.
-    A stream that truly jumps ahead (its next message runs on from the jump) is taken one message
-    late."""
+    sample is made of it. Taken, it would have made every true message out of order for 0.8 s. So
+    is one stamped a reboot's jump behind: taken, it restarted every stream. A stream that truly
+    jumps ahead (its next message runs on from the jump) is taken one message late."""
     a = Assembler()
     t_rx = lambda t: t * 1e-6  # noqa: E731  (received as stamped)
     instants = []
@@ -216,8 +218,15 @@ def test_one_stamp_ahead_is_held_and_dropped_when_the_clock_goes_on_without_it()
         instants.append(None if s is None else s.boot_us)
     assert instants == list(range(0, 100_000, 5_000))
     assert a.counters["attitude_stamp_out_of_place"] == 1 and not a.counters["attitude_out_of_order"]
-    jump = 400_000  # a true jump: the clock runs on from it
+    jump = 2_000_000  # a true jump: the clock runs on from it
     for t in (100_000 + jump, 105_000 + jump):
         a.take_position(t, *truth(t), 0.1)
         a.take_attitude(t, eta(t), None, 0.1)
     assert a.sample(0.1).boot_us == 105_000 + jump and a.counters["attitude_stamp_out_of_place"] == 1
+    for stray_us in (0, 1_000, 1_100_000):  # stamps a reboot's jump behind, alone, between true ones
+        t = a.attitude.t_us + 5_000
+        a.take_attitude(stray_us, eta(0), None, 0.1)
+        a.take_position(t, *truth(t), 0.1)
+        a.take_attitude(t, eta(t), None, 0.1)
+        assert a.sample(0.1).boot_us == t
+    assert a.counters["attitude_stamp_out_of_place"] == 4 and not a.counters["fc_clock_restarted"]
