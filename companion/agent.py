@@ -22,8 +22,8 @@ simulator's clock in lockstep.
 A dead flight controller's clock stops with it, so a lost flight controller is told on the wall
 clock: nothing heard from it for FC_SILENT_S (``watch_fc``, once a second). A clock that broke (its
 boot time back by REBOOT_JUMP_US or more: a reboot; or ahead of the wall clock by CLOCK_JUMP_US) is
-told once CLOCK_BREAK_SAMPLES samples in a row show it (``clock_broke``; those samples are not flown,
-and one alone is dropped as a stale or future stamp, counted). Either way the agent
+told once CLOCK_BREAK_SAMPLES samples in a row show it over CLOCK_BREAK_S (``clock_broke``; those
+samples are not flown, and fewer are dropped as stale or future stamps, counted). Either way the agent
 is LOST: it commands nothing and says so; once the flight controller is heard again it is set up as
 a new one (its parameters, streams and clock) and the flight resumes as after a restart
 (``take_fc_back``).
@@ -71,11 +71,13 @@ CLOCK_JUMP_US = REBOOT_JUMP_US
 """A sample whose boot time ran this much further [us] than the wall clock since the one before:
 the flight controller's clock jumped."""
 CLOCK_BREAK_SAMPLES = 3
-"""A broken clock is believed once this many samples in a row show it, running on from each other
-(a rebooted flight controller's stream does, within milliseconds); samples that show it and are
-followed by one on the old clock were stamps out of place (a hostile message, a frame corrupted past
-its checksum) and are dropped, counted as ``samples_off_the_clock``: one message must not take the
-vehicle's control down."""
+CLOCK_BREAK_S = 0.1
+"""A broken clock is believed once CLOCK_BREAK_SAMPLES samples in a row show it, running on from
+each other, over CLOCK_BREAK_S [s, wall] at least (a rebooted flight controller's stream does);
+samples that show it and are followed by one on the old clock were stamps out of place (a hostile
+message, a frame corrupted past its checksum: a flood of them still leaves the flight controller's
+own telemetry between them) and are dropped, counted as ``samples_off_the_clock``. One message must
+not take the vehicle's control down."""
 
 
 class StartupError(CompanionError):
@@ -423,8 +425,8 @@ class Agent:
         """Whether sample ``s`` is not to be flown because it shows the flight controller's clock
         broken: its boot time REBOOT_JUMP_US or more behind the newest (a reboot), or ahead of the
         wall clock's time since by more than CLOCK_JUMP_US. Once CLOCK_BREAK_SAMPLES in a row show
-        it, running on from each other, the agent is lost; a sample on the old clock after fewer
-        drops them as stamps out of place."""
+        it over CLOCK_BREAK_S, running on from each other, the agent is lost; a sample on the old
+        clock before that drops them as stamps out of place."""
         now = time.monotonic()
         if self.fc_lost_since is not None:
             self._last_boot, self._off_clock = (s.boot_us, now), []
@@ -437,7 +439,7 @@ class Agent:
         if self._off_clock and _clock_break(self._off_clock[-1], s.boot_us, now) is not None:
             self._drop_off_clock()  # (they do not run on to this one: not one new clock)
         self._off_clock.append((s.boot_us, now))
-        if len(self._off_clock) >= CLOCK_BREAK_SAMPLES:
+        if len(self._off_clock) >= CLOCK_BREAK_SAMPLES and now - self._off_clock[0][1] >= CLOCK_BREAK_S:
             self._last_boot, self._off_clock = (s.boot_us, now), []
             self.fc_lost(reason)
         return True

@@ -317,15 +317,21 @@ def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
         loop.close()
 
 
-def test_one_stamp_out_of_place_is_dropped_and_a_reboot_is_still_found():
+def test_one_stamp_out_of_place_is_dropped_and_a_reboot_is_still_found(monkeypatch):
     """A sample stamped far behind the flight controller's clock, or far ahead of it, is not flown;
     if the next one is on the old clock it was a stamp out of place (a hostile or corrupted
-    message): dropped and counted, and the flight controller is not lost. A rebooted flight
-    controller, whose samples all run on a new clock, is lost at the CLOCK_BREAK_SAMPLES-th."""
+    message): dropped and counted, and the flight controller is not lost. So are samples off the
+    clock that come faster than the flight controller could have rebooted (a flood between two of
+    its own). A rebooted flight controller, whose samples all run on a new clock, is lost once
+    CLOCK_BREAK_SAMPLES of them have come over CLOCK_BREAK_S."""
     from collections import Counter
     from types import SimpleNamespace
 
-    from triswarm.companion.agent import CLOCK_BREAK_SAMPLES, Agent
+    from triswarm.companion import agent as agent_mod
+    from triswarm.companion.agent import CLOCK_BREAK_S, CLOCK_BREAK_SAMPLES, Agent
+
+    wall = {"s": 100.0}
+    monkeypatch.setattr(agent_mod, "time", SimpleNamespace(monotonic=lambda: wall["s"]))
 
     def agent():
         a = SimpleNamespace(fc_lost_since=None, _last_boot=None, _off_clock=[], lost=[],
@@ -334,7 +340,8 @@ def test_one_stamp_out_of_place_is_dropped_and_a_reboot_is_still_found():
         a._drop_off_clock = lambda: Agent._drop_off_clock(a)
         return a
 
-    def broke(a, boot_s: float) -> bool:
+    def broke(a, boot_s: float, after_s: float = 0.005) -> bool:
+        wall["s"] += after_s
         return Agent.clock_broke(a, SimpleNamespace(boot_us=round(boot_s * 1e6)))
 
     for stray_s in (1.0, 0.0, 60.0):  # behind (a reboot's look, at 0 too), far ahead
@@ -345,8 +352,13 @@ def test_one_stamp_out_of_place_is_dropped_and_a_reboot_is_still_found():
         assert a.fc.assembler.counters["samples_off_the_clock"] == 1
     a = agent()  # strays that do not run on from each other are not a new clock
     assert [broke(a, t) for t in (10.000, 1.0, 5.0, 0.5)] == [False, True, True, True] and not a.lost
+    a = agent()  # a flood of strays that run on, between two samples of the flight controller's own
+    assert broke(a, 10.000) is False
+    assert [broke(a, 1.0 + 0.001 * k, after_s=0.0005) for k in range(20)] == [True] * 20 and not a.lost
+    assert broke(a, 10.010) is False and a.fc.assembler.counters["samples_off_the_clock"] == 20
     a = agent()  # a reboot: the old clock stops, the new one runs
     assert [broke(a, t) for t in (10.000, 10.005)] == [False, False]
-    new_clock = [broke(a, 0.020 + 0.005 * k) for k in range(CLOCK_BREAK_SAMPLES)]
-    assert new_clock == [True] * CLOCK_BREAK_SAMPLES and len(a.lost) == 1 and "went back" in a.lost[0]
-    assert not a.lost[:-1] and broke(a, 0.020 + 0.005 * CLOCK_BREAK_SAMPLES) is False  # (lost: taken as it comes)
+    n = max(CLOCK_BREAK_SAMPLES, round(CLOCK_BREAK_S / 0.005) + 2)  # (over CLOCK_BREAK_S, at 200 Hz)
+    new_clock = [broke(a, 0.020 + 0.005 * k) for k in range(n)]
+    assert new_clock == [True] * n and len(a.lost) == 1 and "went back" in a.lost[0]
+    assert broke(a, 0.020 + 0.005 * n) is False  # (lost: taken as it comes)
