@@ -108,6 +108,12 @@ NOTHING, NEWER, NEW_CLOCK = 0, 1, 2
 """What a stream's ``take`` did."""
 
 
+def _runs_on(t0_us: int, t0_rx: float, t_us: int, t_rx: float) -> bool:
+    """Whether a stamp ``t_us`` received at ``t_rx`` [s] runs no more than AHEAD_US further than the
+    wall clock since the stamp ``t0_us`` received at ``t0_rx``."""
+    return t_us - t0_us <= 1e6 * (t_rx - t0_rx) + AHEAD_US
+
+
 class _Stream:
     __slots__ = ("t_us", "value", "count", "first_us", "t_rx", "held")
 
@@ -117,7 +123,7 @@ class _Stream:
         self.count = 0
         self.first_us = -1
         self.t_rx = 0.0
-        self.held: tuple | None = None  # (t_us, value, t_rx) of a stamp ahead, until the next one decides
+        self.held: tuple | None = None  # (t_us, value, t_rx) of a stamp that did not run on, until the next decides
 
     def take(self, t_us: int, value, counters: Counter, name: str, t_rx: float) -> int:
         """Take (t_us, value) received at ``t_rx`` [s]: kept if it is the newest, dropped (and
@@ -129,7 +135,7 @@ class _Stream:
             if t_us == held[0]:  # (the same instant again: still undecided)
                 self.held = held
                 return NOTHING
-            if 0 < t_us - held[0] <= 1e6 * (t_rx - held[2]) + AHEAD_US:  # (this one runs on from it)
+            if t_us > held[0] and _runs_on(held[0], held[2], t_us, t_rx):
                 if held[0] < self.t_us:
                     self.count, self.first_us = 0, -1
                     result = NEW_CLOCK
@@ -139,7 +145,7 @@ class _Stream:
             else:
                 counters[f"{name}_stamp_out_of_place"] += 1
         if self.t_us >= 0:
-            if t_us < self.t_us - REBOOT_JUMP_US or t_us - self.t_us > 1e6 * (t_rx - self.t_rx) + AHEAD_US:
+            if t_us < self.t_us - REBOOT_JUMP_US or not _runs_on(self.t_us, self.t_rx, t_us, t_rx):
                 self.held = (t_us, value, t_rx)
                 return result
             if t_us < self.t_us:
