@@ -15,6 +15,11 @@ import numpy as np
 
 from .jit import njit
 
+TORQUE_PRIORITY = 100.0
+"""How much more an angular acceleration counts than a specific force [(m/s^2) / (rad/s^2)] where the
+servo range leaves a drone short (``allocate_within_range``): per unit of rotor input the angular rows
+of G are already 10-70 times the force rows, so the attitude is kept and the force gives way."""
+
 
 @njit()
 def _matvec_add(M, x, out, scale=1.0):
@@ -230,6 +235,70 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 
 
 @njit()
+def allocate_within_range(rho, servo_limit, G, edge):
+    """Rotor inputs rho (6: omega_j^2 sin alpha_j, then omega_j^2 cos alpha_j; updated in place) within
+    the servo range |alpha_j| <= servo_limit, for the body accelerations w = G rho they were computed
+    for (G: ``model.input_matrix``). While every rotor is within the range nothing changes (returns
+    False). A rotor beyond it is held at the nearest edge (edge[j] = +-servo_limit; 0 for a rotor
+    within), free to push along it, and the three rotors then give the angular accelerations of w
+    first and, of its specific force, what is left: least squares with the angular rows weighted
+    ``TORQUE_PRIORITY`` times. (The attitude bound is the tighter, and a torque shortfall turns the
+    drone within a tenth of a second; a force shortfall moves it slowly, and the feedback takes it
+    up.) A rotor that the solution pushes beyond the range joins the held ones in turn; a push along
+    the edge that comes out negative is none. Inputs that are not finite (a state already lost) are
+    left as they are."""
+    edge[:] = 0.0
+    w = np.zeros(6)
+    _matvec_add(G, rho, w)
+    for r in range(6):
+        if not math.isfinite(w[r]):
+            return False
+    held = 0
+    for _ in range(3):
+        grew = False
+        for j in range(3):
+            if edge[j] == 0.0:
+                a = math.atan2(rho[j], rho[j + 3])
+                if abs(a) > servo_limit:
+                    edge[j] = math.copysign(servo_limit, a)
+                    held += 1
+                    grew = True
+        if not grew:
+            break
+        # unknowns: both components of a free rotor, the push along the edge of a held one
+        m = 6 - held
+        A = np.zeros((6, m))
+        col = 0
+        for j in range(3):
+            if edge[j] == 0.0:
+                for r in range(6):
+                    A[r, col] = G[r, j]
+                    A[r, col + 1] = G[r, j + 3]
+                col += 2
+            else:
+                sa, ca = math.sin(edge[j]), math.cos(edge[j])
+                for r in range(6):
+                    A[r, col] = G[r, j] * sa + G[r, j + 3] * ca
+                col += 1
+        b = w.copy()
+        for r in range(3, 6):
+            b[r] *= TORQUE_PRIORITY
+            for c in range(m):
+                A[r, c] *= TORQUE_PRIORITY
+        p = np.linalg.lstsq(A, b)[0]
+        col = 0
+        for j in range(3):
+            if edge[j] == 0.0:
+                rho[j], rho[j + 3] = p[col], p[col + 1]
+                col += 2
+            else:
+                push_n = max(p[col], 0.0)
+                rho[j], rho[j + 3] = push_n * math.sin(edge[j]), push_n * math.cos(edge[j])
+                col += 1
+    return held > 0
+
+
+@njit()
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, drag, max_pitch,
             kappa, adapt_k, k_lo, k_hi, wind, wind_gain, wind_floor, servo_limit, v_pipe, motor_pipe, v_applied,
             v_out, omega, alpha, omega_now, G, M0_inv):
@@ -243,10 +312,10 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     disturbance is the allocation's shortfall, not the wind: no wind-up). z is the observer state: with a disturbance estimate columns 12-14
     are the translational disturbance.
 
-    A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit) gets the
-    nearest force the range allows: its projection on the range's edge, none if it points away. The
-    v committed for such a row is then the one the rotors deliver (``input_shortfall_v``: G and
-    M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
+    A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit) is held at
+    the range's edge and the three rotors keep the angular accelerations asked, giving way in force
+    (``allocate_within_range``). The v committed for such a row is then the one the rotors deliver
+    (``input_shortfall_v``: G and M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
     its disturbance estimate does not take up what the actuators could not deliver (no wind-up)."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)
@@ -254,6 +323,8 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     yd = np.empty(6)
     du = np.empty(6)
     dv = np.empty(6)
+    rho = np.empty(6)
+    edge = np.zeros(3)
     for k in range(rows.shape[0]):
         i = rows[k]
         v_out[k, :] = v_in[k, :]
@@ -272,19 +343,14 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
             if norm2 > 1.0:  # below ~1 m/s^2 of commanded thrust the ratio says little
                 step = adapt_k * (z[i, 12] * a0 + z[i, 13] * a1 + z[i, 14] * a2) / norm2
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
-        saturated = False
-        du[:] = 0.0
+        for q in range(6):
+            rho[q] = u[q] / kappa[i]
+        saturated = allocate_within_range(rho, servo_limit, G, edge)
         for j in range(3):
-            s, c = u[j] / kappa[i], u[j + 3] / kappa[i]
-            a = math.atan2(s, c)
-            if abs(a) > servo_limit:
-                saturated = True
-                a = math.copysign(servo_limit, a)
-                along = s * math.sin(a) + c * math.cos(a)
-                s, c = max(along, 0.0) * math.sin(a), max(along, 0.0) * math.cos(a)
-                du[j], du[j + 3] = kappa[i] * s - u[j], kappa[i] * c - u[j + 3]
-            omega[k, j] = math.sqrt(math.hypot(s, c))
-            alpha[k, j] = a
+            omega[k, j] = math.sqrt(math.hypot(rho[j], rho[j + 3]))
+            alpha[k, j] = edge[j] if edge[j] != 0.0 else math.atan2(rho[j], rho[j + 3])
+        for q in range(6):
+            du[q] = kappa[i] * rho[q] - u[q]
         if saturated:  # commit the v the rotors deliver: the observer's disturbance must not take up the shortfall
             input_shortfall_v(zm, du, G, M0_inv, max_pitch, dv)
             for q in range(6):

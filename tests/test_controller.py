@@ -58,6 +58,37 @@ def test_predictor_gives_the_state_one_servo_delay_ahead(paper_plan, rng):
     assert np.abs(err[:, 9:12]).max() < 1e-4  # position predicted within 0.1 mm
 
 
+def within_range(omega, alpha, G, limit, torque_priority=100.0):
+    """kernels.allocate_within_range's rule, from its docstring: rotors beyond the servo range held at
+    its nearest edge, pushing along it, the others free; the angular rows of w = G rho weighted
+    ``torque_priority`` times in the least squares; again while the solution puts another rotor
+    beyond. Returns the rotor speeds, the servo angles and which rotors are held."""
+    w = G @ model.actuator_map(omega, alpha)
+    held = np.zeros(3, dtype=bool)
+    weight = np.r_[np.ones(3), np.full(3, torque_priority)]
+    while True:
+        grew = ~held & (np.abs(alpha) > limit)
+        if not grew.any():
+            return omega, alpha, held
+        held |= grew
+        edge = np.sign(alpha) * limit
+        columns = []
+        for j in range(3):
+            if held[j]:
+                columns.append(G[:, j] * np.sin(edge[j]) + G[:, j + 3] * np.cos(edge[j]))
+            else:
+                columns += [G[:, j], G[:, j + 3]]
+        p = np.linalg.lstsq(weight[:, None] * np.array(columns).T, weight * w, rcond=None)[0]
+        k = 0
+        for j in range(3):
+            if held[j]:
+                omega[j], alpha[j] = np.sqrt(max(p[k], 0.0)), edge[j]
+                k += 1
+            else:
+                omega[j], alpha[j] = np.sqrt(np.hypot(p[k], p[k + 1])), np.arctan2(p[k], p[k + 1])
+                k += 2
+
+
 class NumpyController:
     """One tick of the controller in plain numpy, from the design and protocol/controller.py's
     docstring, not from its kernels: the observer (73) with the disturbance state, discretised
@@ -82,6 +113,7 @@ class NumpyController:
         af = design.rfl.airframe
         self.k_m = 0.5 * air_density_kg_m3 * af.drag_coefficient * af.frontal_area_m2 / af.mass_kg
         self.wind_gain = wind_estimate_rate_1_s * T
+        self.G = model.input_matrix(af)
 
     def reset(self, x):
         self.z = np.hstack([self.rfl.phi_r(x), np.zeros((self.n, 6))])
@@ -109,11 +141,9 @@ class NumpyController:
         step = np.where(n2 > 1.0, self.adapt_k * (self.z[:, 12:15] * thrust).sum(axis=1) / n2, 0.0)
         self.kappa = np.clip(self.kappa * (1.0 + step), 0.3, 3.0)
         omega, alpha = model.actuator_inverse(u / self.kappa[:, None])
-        limit = self.rfl.airframe.servo_limit_rad
-        edge = np.sign(alpha) * limit
-        beyond = np.abs(alpha) > limit  # the force's projection on the servo range's edge, none if negative
-        omega = np.where(beyond, np.sqrt(np.maximum(omega**2 * np.cos(alpha - edge), 0.0)), omega)
-        alpha = np.where(beyond, edge, alpha)
+        beyond = np.zeros((self.n, 3), dtype=bool)
+        for i in range(self.n):
+            omega[i], alpha[i], beyond[i] = within_range(omega[i], alpha[i], self.G, self.rfl.airframe.servo_limit_rad)
         # a drone with a rotor at the edge commits the v that gives what its rotors deliver: u is
         # affine in v with slope beta(x) (51), so v + beta^-1 (u delivered - u)
         x = self.rfl.phi_r_inverse(zm[:, :12])
