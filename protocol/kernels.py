@@ -248,11 +248,7 @@ def allocate_within_range(rho, servo_limit, G, edge):
     the edge that comes out negative is none. Inputs that are not finite (a state already lost) are
     left as they are."""
     edge[:] = 0.0
-    w = np.zeros(6)
-    _matvec_add(G, rho, w)
-    for r in range(6):
-        if not math.isfinite(w[r]):
-            return False
+    w = np.empty(0)  # (the accelerations asked: computed once a rotor is beyond, not every tick)
     held = 0
     for _ in range(3):
         grew = False
@@ -265,6 +261,13 @@ def allocate_within_range(rho, servo_limit, G, edge):
                     grew = True
         if not grew:
             break
+        if w.size == 0:
+            w = np.zeros(6)
+            _matvec_add(G, rho, w)
+            for r in range(6):
+                if not math.isfinite(w[r]):
+                    edge[:] = 0.0
+                    return False
         # unknowns: both components of a free rotor, the push along the edge of a held one
         m = 6 - held
         A = np.zeros((6, m))
@@ -349,9 +352,9 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
         for j in range(3):
             omega[k, j] = math.sqrt(math.hypot(rho[j], rho[j + 3]))
             alpha[k, j] = edge[j] if edge[j] != 0.0 else math.atan2(rho[j], rho[j + 3])
-        for q in range(6):
-            du[q] = kappa[i] * rho[q] - u[q]
         if saturated:  # commit the v the rotors deliver: the observer's disturbance must not take up the shortfall
+            for q in range(6):
+                du[q] = kappa[i] * rho[q] - u[q]
             input_shortfall_v(zm, du, G, M0_inv, max_pitch, dv)
             for q in range(6):
                 v_out[k, q] += dv[q]
