@@ -146,7 +146,8 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
         "controller": {"rate_hz": plan.controller.rate_hz,
                        "thrust_adaptation_rate_1_s": plan.controller.thrust_adaptation_rate_1_s,
                        "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind),
-                       "wind_estimate_rate_1_s": plan.controller.wind_estimate_rate_1_s},
+                       "wind_estimate_rate_1_s": plan.controller.wind_estimate_rate_1_s,
+                       "accelerometer": plan.controller.accelerometer},
         "flight": flight.summary() if flight is not None else {"flown": False},
         "ok": flight is not None,
     }

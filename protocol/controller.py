@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg
 
-from .design import Design
+from .design import RATES, Design, accel_model, measured_outputs
 from . import kernels
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL
@@ -113,7 +113,7 @@ class FormationController:
         """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
         thrust adaptation, wind estimate and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
         way a simulation and the companions make theirs."""
-        return cls(plan.design, n_agents, rate_hz, delay_s,
+        return cls(plan.design, n_agents, rate_hz, delay_s, measured_accel=plan.controller.accelerometer,
                    thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
                    air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates,
                    wind_estimate_rate_1_s=plan.controller.wind_estimate_rate_1_s)
@@ -121,7 +121,7 @@ class FormationController:
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
                  air_density_kg_m3: float = 0.0, measured_rates: bool = False,
-                 wind_estimate_rate_1_s: float = 0.0) -> None:
+                 wind_estimate_rate_1_s: float = 0.0, measured_accel: bool = False) -> None:
         """air_density_kg_m3: the air the drones fly in, as the controller assumes it [kg/m^3], for
         the drag the RFL cancels; 0 is no air (the paper's law, to the bit). wind_estimate_rate_1_s:
         the rate [1/s] at which the wind estimate takes up the translational disturbance that its
@@ -147,26 +147,43 @@ class FormationController:
         """Take the body rates given to ``observe`` (the observer with the Euler rates as three more
         outputs); off: the observer alone estimates them (docs/control-design.md says why it is
         the default)."""
+        self.measured_accel = bool(measured_accel)
+        """Take the specific force given to ``observe`` (the observer, with a disturbance estimate,
+        with the earth-frame acceleration as three more outputs: an accelerometer measures the
+        disturbance)."""
         self.adaptation_rate = float(thrust_adaptation_rate_1_s)
         if not (np.isfinite(wind_estimate_rate_1_s) and wind_estimate_rate_1_s >= 0):
             raise ValueError(f"wind estimate rate must be a non-negative number of 1/s, got {wind_estimate_rate_1_s!r}")
         self.wind_estimate_rate_1_s = float(wind_estimate_rate_1_s)
         self.kappa_limits = thrust_scale_limits
 
-        A, B, C, F = design.observer_model()
+        A, B, C, _ = design.observer_model()
+        if self.measured_accel and design.estimates_disturbance:  # (the accelerometer's bias: three more states)
+            A, B, _ = accel_model(A, B, C)
         self.n_z = A.shape[0]
-        cF = design.c * F
         # contiguous copies: the compiled loops index them row by row
-        self._Phi, self._Gv, self._Gy0, self._Gy1 = map(np.ascontiguousarray, _zoh_foh(A - cF @ C, B, cF, self.dt_s))
         Phi1, G1 = map(np.ascontiguousarray, _zoh(A, B, self.dt_s))
         self._Phi1, self._G1 = Phi1, G1
         # Prediction over the pipe: z(t + D dt) = Phi1^D z + sum_j Phi1^(D-1-j) G1 v_j.
         self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
         self._pred_G = np.array([np.linalg.matrix_power(Phi1, self.lead_ticks - 1 - j) @ G1
                                  for j in range(self.lead_ticks)]).reshape(self.lead_ticks, self.n_z, 6)
-        A9, B9, C9, F9 = design.rates_observer_model()
-        self._Phi9, self._Gv9, self._Gy0_9, self._Gy1_9 = map(np.ascontiguousarray,
-                                                              _zoh_foh(A9 - design.c * F9 @ C9, B9, design.c * F9, self.dt_s))
+        # One discretisation per set of outputs measured (design.RATES | design.ACCEL), each over the
+        # 12 outputs of design.full_output (zero columns for those not measured). One whose model has
+        # fewer states (no accelerometer's bias) holds the others as they are.
+        n = self.n_z
+        self._Phi_m = np.tile(np.eye(n), (4, 1, 1))
+        self._Gv_m, self._Gy0_m, self._Gy1_m = np.zeros((4, n, 6)), np.zeros((4, n, 12)), np.zeros((4, n, 12))
+        for measured in range(4):
+            Am, Bm, Cm, Fm = design.measured_observer_model(measured)
+            m = Am.shape[0]
+            if m > n:  # (an accelerometer's gains in a controller that does not take it)
+                continue
+            idx = measured_outputs(measured if design.estimates_disturbance else measured & RATES)
+            Phi, Gv, Gy0, Gy1 = _zoh_foh(Am - design.c * Fm @ Cm, Bm, design.c * Fm, self.dt_s)
+            self._Phi_m[measured][:m, :m], self._Gv_m[measured][:m] = Phi, Gv
+            self._Gy0_m[measured][:m, idx], self._Gy1_m[measured][:m, idx] = Gy0, Gy1
+        self._B_accel = np.ascontiguousarray(design.B_r[0:3])
         self._half_Phi, self._half_G = map(np.ascontiguousarray, _zoh(A, B, 0.5 * self.dt_s))
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
@@ -191,8 +208,7 @@ class FormationController:
         (len(rows), 12) to restart only those agents (the others keep their state)."""
         if self.z is None:
             self.z = np.zeros((self.n, self.n_z))
-            self._y_prev = np.zeros((self.n, 6))
-            self._ed_prev = np.full((self.n, 3), np.nan)
+            self._y_prev = np.full((self.n, 12), np.nan)
             self._fresh = np.ones(self.n, dtype=np.bool_)
             self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
             self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
@@ -204,8 +220,8 @@ class FormationController:
         self.z[rows] = 0.0
         self.z[rows, :12] = self.rfl.phi_r(x)
         self._z_pred[rows] = self.z[rows]
-        self._y_prev[rows] = x[:, 6:12]
-        self._ed_prev[rows] = np.nan
+        self._y_prev[rows] = np.nan
+        self._y_prev[rows, :6] = x[:, 6:12]
         self._fresh[rows] = True  # the first measurement after a reset is taken, not integrated
         hold = self.rfl.control(x, np.zeros((rows.size, 6)), self.air_density_kg_m3)
         omega, alpha = actuator_inverse(hold)
@@ -241,7 +257,8 @@ class FormationController:
             return self._all_rows
         return np.asarray(rows, dtype=np.int64).reshape(-1)
 
-    def observe(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> np.ndarray:
+    def observe(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None,
+                accel_b_m_s2: np.ndarray | None = None) -> np.ndarray:
         """Take y = (eta [rad], lambda [m]) (len(rows), 6) at t, and the body rates measured at t
         (len(rows), 3) [rad/s] where a gyro gives them; return the estimate of x_r at t + lead_s of
         those rows.
@@ -254,14 +271,18 @@ class FormationController:
             raise RuntimeError("FormationController.observe before reset")
         rows = self._rows(rows)
         y = np.ascontiguousarray(y, dtype=float).reshape(rows.size, 6)
-        if rate_b_rad_s is None or not self.measured_rates:
-            rates = np.full((rows.size, 3), np.nan)
-        else:
-            rates = np.ascontiguousarray(rate_b_rad_s, dtype=float).reshape(rows.size, 3)
-        kernels.observe(rows, self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi, self._Gv, self._Gy0,
-                        self._Gy1, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe, self._z_pred,
-                        rates, self._ed_prev, self._Phi9, self._Gv9, self._Gy0_9, self._Gy1_9, MAX_PITCH_RAD)
+        rates = self._measured(rate_b_rad_s, self.measured_rates, rows.size)
+        accel = self._measured(accel_b_m_s2, self.measured_accel and self.design.estimates_disturbance, rows.size)
+        kernels.observe(rows, self.z, self._v_applied, self._y_prev, y, self._fresh, self._Phi_m, self._Gv_m,
+                        self._Gy0_m, self._Gy1_m, self._Phi1, self._G1, self._pred_Phi, self._pred_G, self._v_pipe,
+                        self._z_pred, rates, accel, self._B_accel, self.rfl.airframe.gravity_m_s2, MAX_PITCH_RAD)
         return self._z_pred[rows, :12]
+
+    @staticmethod
+    def _measured(values: np.ndarray | None, taken: bool, n_rows: int) -> np.ndarray:
+        if values is None or not taken:
+            return np.full((n_rows, 3), np.nan)
+        return np.ascontiguousarray(values, dtype=float).reshape(n_rows, 3)
 
     def actuate(self, v: np.ndarray, rows=None) -> Actuation:
         """Turn the protocol input v (len(rows), 6) for t + lead_s into the commands to send now."""
@@ -280,11 +301,12 @@ class FormationController:
                         self._G, self._M0_inv)
         return Actuation(omega_now, alpha)
 
-    def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None) -> None:
+    def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None,
+                  accel_b_m_s2: np.ndarray | None = None) -> None:
         """A control period in which no new command went out (the loop fell behind): take the
         measurement, and record that the actuators kept the last command."""
         rows = self._rows(rows)
-        self.observe(y, rows, rate_b_rad_s)
+        self.observe(y, rows, rate_b_rad_s, accel_b_m_s2)
         last_v = self._v_pipe[-1, rows] if self.lead_ticks else self._v_applied[rows]
         kept = np.empty((rows.size, 3))  # (the rotor speeds: the pipe keeps its last ones)
         kernels.push(rows, last_v, kept, True, self._v_pipe, self._motor_pipe, self._v_applied, kept)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+import scipy.linalg
 
 from . import kernels
 from .errors import FormationError, ParameterError
@@ -27,6 +28,13 @@ ROW_GROUPS = (
     (slice(6, 9), "attitude rows 7-9"),
     (slice(9, 12), "position rows 10-12"),
 )
+
+
+DEFAULT_R_BAR_ACCEL = (0.1**2,) * 3
+"""An accelerometer's noise at the control rate, the airframe's vibration in it, per axis [m^2/s^4]."""
+DEFAULT_Q_ACCEL_BIAS = (1e-2,) * 3
+"""An accelerometer bias that may wander by 0.1 m/s^2 in a second, per axis [m^2/s^5]: fast enough for the
+observer to follow a bias fixed in the body, earth frame, as the drone turns."""
 
 
 @dataclass(frozen=True)
@@ -51,6 +59,13 @@ class DesignWeights:
     R_bar_rates: np.ndarray = field(default_factory=lambda: np.full(3, 0.01**2))
     """Measurement noise of the Euler rates Psi(eta) omega that a gyro gives [rad^2/s^2], the three
     more outputs of the observer used where body rates are measured."""
+    R_bar_accel: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_R_BAR_ACCEL))
+    """Measurement noise of the earth-frame acceleration an accelerometer gives (its specific force
+    turned to the earth frame, gravity taken out) [m^2/s^4], the three more outputs of the observer
+    (with a disturbance estimate) used where the specific force is measured."""
+    Q_accel_bias: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_Q_ACCEL_BIAS))
+    """Intensity of the random walk of the accelerometer's bias, earth frame [m^2/s^5]: how fast
+    the observer lets it wander."""
 
     def __post_init__(self) -> None:
         qd = np.array(self.Q_disturbance, dtype=float).reshape(-1)
@@ -60,11 +75,12 @@ class DesignWeights:
             raise ParameterError("design weight Q_disturbance must be all positive (disturbance estimation on) or all zero (off)")
         qd.setflags(write=False)
         object.__setattr__(self, "Q_disturbance", qd)
-        rr = np.array(self.R_bar_rates, dtype=float).reshape(-1)
-        if rr.shape != (3,) or not np.all(np.isfinite(rr)) or np.any(rr <= 0):
-            raise ParameterError(f"design weight R_bar_rates must be 3 positive numbers, got {self.R_bar_rates!r}")
-        rr.setflags(write=False)
-        object.__setattr__(self, "R_bar_rates", rr)
+        for name in ("R_bar_rates", "R_bar_accel", "Q_accel_bias"):
+            rr = np.array(getattr(self, name), dtype=float).reshape(-1)
+            if rr.shape != (3,) or not np.all(np.isfinite(rr)) or np.any(rr <= 0):
+                raise ParameterError(f"design weight {name} must be 3 positive numbers, got {getattr(self, name)!r}")
+            rr.setflags(write=False)
+            object.__setattr__(self, name, rr)
         for name, n in (("Q", 12), ("R", 6), ("Q_bar", 12), ("R_bar", 6)):
             M = np.array(getattr(self, name), dtype=float)
             if M.ndim == 1:
@@ -102,9 +118,12 @@ class Design:
     topology_names: tuple[str, ...] = field(default=())
     F_aug: np.ndarray | None = None
     """Kalman gain (18 x 6) of the observer augmented with the acceleration disturbance, or None."""
-    F_rates: np.ndarray | None = None
-    """Kalman gain (n x 9) of the observer the controller runs (``observer_model``) with the Euler
-    rates x_r[3:6] as three more outputs, for the ticks whose body rates are measured."""
+    F_measured: tuple[np.ndarray, ...] = ()
+    """Kalman gains of the observer the controller runs, one for each set of outputs a tick
+    measures (index ``RATES`` | ``ACCEL`` bits), of ``measured_observer_model``: (eta, lambda)
+    always; the Euler rates x_r[3:6] where a gyro gives the body rates; the earth-frame acceleration
+    where an accelerometer gives the specific force (with a disturbance estimate only: without one,
+    the ACCEL gains are those without it). Index 0 is F (or F_aug) itself."""
 
     @property
     def estimates_disturbance(self) -> bool:
@@ -115,10 +134,18 @@ class Design:
         """c K, the feedback gain of (72) (kept: the protocol uses it every tick)."""
         return np.ascontiguousarray(self.c * self.K)
 
-    def rates_observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(A, B, C, F) of ``observer_model`` with the measured Euler rates: y = (eta, lambda, eta_dot)."""
+    def measured_observer_model(self, measured: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C, F) of the observer with the outputs ``measured`` (``RATES`` | ``ACCEL``) as well:
+        y = (eta, lambda[, eta_dot][, R(eta) f - g e_z - B_r v]). With the acceleration, the model
+        is ``observer_model``'s with the accelerometer's bias as three more states (``accel_model``)."""
+        if not self.estimates_disturbance:
+            measured &= RATES
         A, B, C, _ = self.observer_model()
-        return A, B, rates_output(C), self.F_rates
+        if measured & ACCEL:
+            A, B, C = accel_model(A, B, C)
+        else:
+            C = full_output(A, C)
+        return A, B, C[measured_outputs(measured)], self.F_measured[measured]
 
     def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented
@@ -165,9 +192,10 @@ class Design:
         aug = self.augmented_observer_matrix()
         if aug is not None:
             out["augmented_observer_max_real_part"] = float(np.linalg.eigvals(aug).real.max())
-        if self.F_rates is not None:
-            A, _, C, F = self.rates_observer_model()
-            out["rates_observer_max_real_part"] = float(np.linalg.eigvals(A - self.c * F @ C).real.max())
+        if self.F_measured:
+            for measured, name in ((RATES, "rates"), (ACCEL, "accel"), (RATES | ACCEL, "imu")):
+                A, _, C, F = self.measured_observer_model(measured)
+                out[f"{name}_observer_max_real_part"] = float(np.linalg.eigvals(A - self.c * F @ C).real.max())
         return out
 
     def gamma(self, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
@@ -202,11 +230,36 @@ def augmented_model(A_r: np.ndarray, B_r: np.ndarray, C_r: np.ndarray) -> tuple[
     return A, B, C
 
 
-def rates_output(C: np.ndarray) -> np.ndarray:
-    """C with the Euler rates (x_r rows 4-6) as three more outputs below (eta, lambda)."""
+RATES, ACCEL = 1, 2
+"""The outputs a tick measures beyond (eta, lambda), as bits: the body rates (a gyro) and the
+specific force (an accelerometer)."""
+
+
+def measured_outputs(measured: int) -> list[int]:
+    """The rows of ``full_output`` a tick with the outputs ``measured`` (``RATES`` | ``ACCEL``) has."""
+    return list(range(6)) + ([6, 7, 8] if measured & RATES else []) + ([9, 10, 11] if measured & ACCEL else [])
+
+
+def full_output(A: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """The observer's 12 outputs where every sensor gives one: C's (eta, lambda), the Euler rates
+    (x_r rows 4-6) and the earth-frame acceleration x_r rows 1-3 change at, less its B_r v: the
+    rows 1-3 of A (with a disturbance estimate, they carry it: an accelerometer measures it)."""
     E = np.zeros((3, C.shape[1]))
     E[:, 3:6] = np.eye(3)
-    return np.vstack([C, E])
+    return np.vstack([C, E, A[0:3]])
+
+
+def accel_model(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The model (A, B, C) extended with an accelerometer's bias, earth frame, as three more states
+    (a random walk, ``DesignWeights.Q_accel_bias``) that only the acceleration output sees: (A, B,
+    full_output) of n + 3 states. The position tells a bias from a disturbance: a disturbance moves
+    the drone, a bias does not."""
+    n = A.shape[0]
+    A_b = scipy.linalg.block_diag(A, np.zeros((3, 3)))
+    B_b = np.vstack([B, np.zeros((3, B.shape[1]))])
+    C_b = np.hstack([full_output(A, C), np.zeros((12, 3))])
+    C_b[9:12, n:] = np.eye(3)
+    return A_b, B_b, C_b
 
 
 _kept: tuple[Callable[[str], bytes | None], Callable[[str, bytes], None]] | None = None
@@ -271,12 +324,21 @@ def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:
         A_o, C_o, Q_o = Aa, Ca, Qa
     else:
         A_o, C_o, Q_o = A, C, weights.Q_bar
-    R_rates = np.zeros((9, 9))
-    R_rates[:6, :6] = weights.R_bar
-    R_rates[6:, 6:] = np.diag(weights.R_bar_rates)
-    F_rates = _solved("lqe", A_o, np.eye(A_o.shape[0]), rates_output(C_o), Q_o, R_rates)[0]
+    R_full = scipy.linalg.block_diag(weights.R_bar, np.diag(weights.R_bar_rates), np.diag(weights.R_bar_accel))
+    F_measured = [F if F_aug is None else F_aug]
+    for measured in (RATES, ACCEL, RATES | ACCEL):
+        if F_aug is None and measured & ACCEL:
+            F_measured.append(F_measured[measured & RATES])
+            continue
+        idx = measured_outputs(measured)
+        if measured & ACCEL:
+            A_m, _, C_m = accel_model(A_o, np.zeros((A_o.shape[0], 0)), C_o)
+            Q_m = scipy.linalg.block_diag(Q_o, np.diag(weights.Q_accel_bias))
+        else:
+            A_m, C_m, Q_m = A_o, full_output(A_o, C_o), Q_o
+        F_measured.append(_solved("lqe", A_m, np.eye(A_m.shape[0]), C_m[idx], Q_m, R_full[np.ix_(idx, idx)])[0])
     d = Design(rfl, weights, np.asarray(K), np.asarray(P), np.asarray(F), np.asarray(P_bar), c, lambda_R, eigs,
-               B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug, F_rates)
+               B_tilde, B_bar, tuple(t.name for t in schedule.topologies), F_aug, tuple(F_measured))
     margins = d.stability_margins()
     if any(value >= 0 for value in margins.values()):
         raise ParameterError(f"design is not stable (77): {margins}")

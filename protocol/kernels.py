@@ -106,6 +106,17 @@ def rfl_xr_row(xr, v, L, M0, I, Ii, G_inv, g, drag, wind, max_pitch, u, yddot):
     _matvec_add(G_inv, w, u)
 
 
+@njit(inline="always")
+def body_to_earth(phi, theta, psi, b0, b1, b2):
+    """R(eta) b: a body-frame vector in the earth frame (paper frames, ZYX Euler angles)."""
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(theta), math.cos(theta)
+    sp, cp = math.sin(psi), math.cos(psi)
+    return (ct * cp * b0 + (sf * st * cp - cf * sp) * b1 + (cf * st * cp + sf * sp) * b2,
+            ct * sp * b0 + (sf * st * sp + cf * cp) * b1 + (cf * st * sp - sf * cp) * b2,
+            -st * b0 + sf * ct * b1 + cf * ct * b2)
+
+
 @njit()
 def input_shortfall_v(xr, du, G, M0_inv, max_pitch, dv):
     """The protocol input dv (6) that the RFL at x_r would have turned into the input change du (6,
@@ -116,7 +127,6 @@ def input_shortfall_v(xr, du, G, M0_inv, max_pitch, dv):
     psi = xr[8]
     sf, cf = math.sin(phi), math.cos(phi)
     st, ct = math.sin(theta), math.cos(theta)
-    sp, cp = math.sin(psi), math.cos(psi)
     w = np.zeros(6)
     _matvec_add(G, du, w)
     y = np.empty(6)
@@ -126,9 +136,7 @@ def input_shortfall_v(xr, du, G, M0_inv, max_pitch, dv):
     y[1] = cf * w[4] - sf * w[5]
     y[2] = sf * sec * w[4] + cf * sec * w[5]
     # lambda rows: R_b2e times the body specific force
-    y[3] = ct * cp * w[0] + (sf * st * cp - cf * sp) * w[1] + (cf * st * cp + sf * sp) * w[2]
-    y[4] = ct * sp * w[0] + (sf * st * sp + cf * cp) * w[1] + (cf * st * sp - sf * cp) * w[2]
-    y[5] = -st * w[0] + sf * ct * w[1] + cf * ct * w[2]
+    y[3], y[4], y[5] = body_to_earth(phi, theta, psi, w[0], w[1], w[2])
     dv[:] = 0.0
     _matvec_add(M0_inv, y, dv)
 
@@ -152,58 +160,74 @@ def euler_rates(phi, theta, p, q, r, max_pitch, out):
 
 @njit()
 def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, pred_Phi, pred_G, v_pipe, z_pred,
-            rate_b, ed_prev, Phi9, Gv9, Gy0_9, Gy1_9, max_pitch):
+            rate_b, accel_b, B_accel, g, max_pitch):
     """One observer step for each agent row in ``rows`` (FOH on y, ZOH on v), then the prediction
-    over the pipe; y[k] is row rows[k]'s measurement. A row whose measurement is not finite runs
-    the open-loop model instead; a fresh row (just reset at this instant) only takes the
+    over the pipe; y[k] is row rows[k]'s measurement (eta, lambda). A row whose measurement is not
+    finite runs the open-loop model instead; a fresh row (just reset at this instant) only takes the
     measurement. Updates z, y_prev, fresh, z_pred of those rows.
 
-    rate_b[k] is row rows[k]'s measured body rates (NaN: none). A row with rates and y runs the
-    observer with the Euler rates they give, Psi(eta) omega (eta measured), as three more outputs
-    (Phi9, Gv9, Gy0_9, Gy1_9; FOH from the last measured ones, ``ed_prev``, NaN when none); the
-    others run as without rates, bit for bit."""
+    The observer has up to 12 outputs (``design.full_output``), and Phi, Gv, Gy0, Gy1 (4, ...) one
+    discretisation per set of them measured (index: 1 with rates, + 2 with the acceleration).
+    rate_b[k] is row rows[k]'s measured body rates (NaN: none): they give the Euler rates
+    Psi(eta) omega (eta measured). accel_b[k] is its measured specific force, body frame [m/s^2]
+    (NaN: none): it gives the earth-frame acceleration R(eta) f - g e_z, less B_accel v_applied (the
+    part the model's input explains, x_r rows 1-3 of B_r). An output measured now and not the tick
+    before starts its first-order hold from now. y_prev (N, 12) keeps the last outputs (NaN: not
+    measured). A row with (eta, lambda) alone runs as the observer of 6 outputs, bit for bit."""
     nz = z.shape[1]
     tmp = np.empty(nz)
     ed = np.empty(3)
+    yk = np.empty(12)
     for k in range(rows.shape[0]):
         i = rows[k]
         ok = True
         for c in range(y.shape[1]):
             if not math.isfinite(y[k, c]):
                 ok = False
+        yk[:6] = y[k, :]
+        yk[6:] = math.nan
         rated = ok and math.isfinite(rate_b[k, 0]) and math.isfinite(rate_b[k, 1]) and math.isfinite(rate_b[k, 2])
         if rated:
             euler_rates(y[k, 0], y[k, 1], rate_b[k, 0], rate_b[k, 1], rate_b[k, 2], max_pitch, ed)
-            if not math.isfinite(ed_prev[i, 0]):
-                ed_prev[i, :] = ed
+            yk[6:9] = ed
+        felt = ok and math.isfinite(accel_b[k, 0]) and math.isfinite(accel_b[k, 1]) and math.isfinite(accel_b[k, 2])
+        if felt:
+            ax, ay, az = body_to_earth(y[k, 0], y[k, 1], y[k, 2], accel_b[k, 0], accel_b[k, 1], accel_b[k, 2])
+            yk[9], yk[10], yk[11] = ax, ay, az - g
+            for r in range(3):
+                for c in range(6):
+                    yk[9 + r] -= B_accel[r, c] * v_applied[i, c]
+        m = (1 if rated else 0) + (2 if felt else 0)
         if fresh[i]:
             fresh[i] = False
             if ok:
-                y_prev[i, :] = y[k, :]
+                y_prev[i, :] = yk
+            else:
+                y_prev[i, 6:] = math.nan
         else:
             tmp[:] = 0.0
-            if rated:
-                _matvec_add(Phi9, z[i], tmp)
-                _matvec_add(Gv9, v_applied[i], tmp)
-                _matvec_add(Gy0_9[:, :6], y_prev[i], tmp)
-                _matvec_add(Gy0_9[:, 6:], ed_prev[i], tmp)
-                _matvec_add(Gy1_9[:, :6], y[k], tmp)
-                _matvec_add(Gy1_9[:, 6:], ed, tmp)
-                y_prev[i, :] = y[k, :]
-            elif ok:
-                _matvec_add(Phi, z[i], tmp)
-                _matvec_add(Gv, v_applied[i], tmp)
-                _matvec_add(Gy0, y_prev[i], tmp)
-                _matvec_add(Gy1, y[k], tmp)
-                y_prev[i, :] = y[k, :]
+            if ok:
+                for c in range(6, 12):
+                    if not math.isfinite(y_prev[i, c]):
+                        y_prev[i, c] = yk[c]
+                _matvec_add(Phi[m], z[i], tmp)
+                _matvec_add(Gv[m], v_applied[i], tmp)
+                _matvec_add(Gy0[m][:, :6], y_prev[i, :6], tmp)
+                if rated:
+                    _matvec_add(Gy0[m][:, 6:9], y_prev[i, 6:9], tmp)
+                if felt:
+                    _matvec_add(Gy0[m][:, 9:12], y_prev[i, 9:12], tmp)
+                _matvec_add(Gy1[m][:, :6], yk[:6], tmp)
+                if rated:
+                    _matvec_add(Gy1[m][:, 6:9], yk[6:9], tmp)
+                if felt:
+                    _matvec_add(Gy1[m][:, 9:12], yk[9:12], tmp)
+                y_prev[i, :] = yk
             else:
                 _matvec_add(Phi1, z[i], tmp)
                 _matvec_add(G1, v_applied[i], tmp)
+                y_prev[i, 6:] = math.nan
             z[i, :] = tmp
-        if rated:
-            ed_prev[i, :] = ed
-        else:
-            ed_prev[i, :] = math.nan
         z_pred[i, :] = 0.0
         _matvec_add(pred_Phi, z[i], z_pred[i])
         for j in range(pred_G.shape[0]):
@@ -338,7 +362,10 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
         _matvec_add(half_G, v_out[k], zm)
         rfl_xr_row(zm[:12], v_out[k], L, M0, I, Ii, G_inv, g, drag, wind[i], max_pitch, u, yd)
         if adapt_k > 0.0:
-            a0, a1, a2 = yd[3], yd[4], yd[5] + g  # the commanded specific thrust
+            # the specific thrust the law asks before it cancels the disturbance estimate: a regressor
+            # with the cancellation in it (a - d) would correlate with d itself, and run kappa down
+            # in any air that moves d about
+            a0, a1, a2 = yd[3] + z[i, 12], yd[4] + z[i, 13], yd[5] + g + z[i, 14]
             if drag > 0.0:
                 dx, dy, dz = drag_share(zm, drag, wind[i])
                 a0, a1, a2 = a0 + dx, a1 + dy, a2 + dz

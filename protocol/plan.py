@@ -16,8 +16,9 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [topology]        switch_period_s, and families = [...] or [[topology.graphs]] with
                       name, pinned = [agents], edges = [[from, to], ...] (agents from 1, 0 = leader)
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
-                      Q_disturbance_diag (6; zeros switch disturbance estimation off)
-    [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled)
+                      Q_disturbance_diag (6; zeros switch disturbance estimation off), R_bar_accel_diag (3)
+    [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled),
+                      accelerometer (true: the observer takes the flight controller's specific force)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s, rotor_speed_margin_pct,
                       tilt_margin_deg, turbulence_sigmas (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
@@ -37,7 +38,7 @@ from .air_margin import (DEFAULT_ROTOR_SPEED_MARGIN_PCT, DEFAULT_TILT_MARGIN_DEG
                          ActuatorDemand, actuator_demand, demand_in_air, describe_design_air, margin_problem)
 from .airframe import Airframe, ParameterError, finite_number
 from .certificate import Certificate, LoopMatrices, certify
-from .design import Design, DesignWeights, FormationError, check_feasibility, design
+from .design import DEFAULT_R_BAR_ACCEL, Design, DesignWeights, FormationError, check_feasibility, design
 from .errors import PlanError
 from .formation import (Blend, ConstantFormation, EntryBlend, Formation, KeyframeFormation, RawOffsets,
                         RotatingPolygon, paper_attitudes)
@@ -118,6 +119,11 @@ class ControllerSettings:
     law) when it is flown in no air (``Plan.controller_air_density_kg_m3``)."""
     wind_estimate_rate_1_s: float = 1.0
     """Rate [1/s] of the controllers' horizontal wind estimate, in air (0: drag cancelled as in still air)."""
+    accelerometer: bool = True
+    """The controllers take the specific force their flight controller's accelerometer measures
+    (HIGHRES_IMU, SCALED_IMU) as three more outputs of the observer: the disturbance measured, not
+    only inferred from the position (``FormationController`` ``measured_accel``); needs the
+    disturbance estimate on. A tick without a reading runs the observer without it."""
 
 
 @dataclass(frozen=True)
@@ -339,6 +345,12 @@ class _Fields:
         except ParameterError as exc:
             raise PlanError(str(exc)) from None
 
+    def flag(self, key: str, default: bool) -> bool:
+        value = self.get(key, default)
+        if not isinstance(value, bool):
+            raise PlanError(f"{self.where(key)} must be true or false, got {value!r}")
+        return value
+
     def array(self, key: str, shape: tuple[int, ...], default=None, *, per_drone: int | None = None) -> np.ndarray:
         """A finite array of the given shape; with per_drone = N, a single row is repeated for every drone."""
         value = self.get(key, default)
@@ -486,6 +498,7 @@ def _weights(f: _Fields) -> DesignWeights:
             R_bar=f.array("R_bar_diag", (6,), DEFAULT_R_BAR),
             coupling_margin=f.number("coupling_margin", DEFAULT_COUPLING_MARGIN),
             Q_disturbance=f.array("Q_disturbance_diag", (6,), DEFAULT_Q_DISTURBANCE),
+            R_bar_accel=f.array("R_bar_accel_diag", (3,), DEFAULT_R_BAR_ACCEL),
         )
     except ParameterError as exc:
         raise PlanError(f"{f.source}: [design] {exc}") from None
@@ -524,7 +537,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
     ctrl = ControllerSettings(cf.number("rate_hz", 200.0, positive=True),
                               cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True),
                               cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None,
-                              cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True))
+                              cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True),
+                              cf.flag("accelerometer", True))
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),

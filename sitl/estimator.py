@@ -35,6 +35,12 @@ class EstimatorProfile:
     """How long the biases take to wander (their correlation time) [s]."""
     lag_s: float
     """How old the reported state is [s]."""
+    accel_noise_m_s2: float = 0.1
+    """White noise on each accelerometer axis [m/s^2] (the raw specific force an autopilot streams:
+    the airframe's vibration, not the estimator's lag)."""
+    accel_bias_m_s2: float = 0.05
+    """Standard deviation of each accelerometer axis's bias [m/s^2], drawn once per vehicle: what
+    calibration leaves."""
     vertical_bias_factor: float = 1.5
     smoothing_s: float = 1.0
     """The estimator's smoothing of the wandering (its time constant [s]): an EKF's position error
@@ -44,7 +50,8 @@ class EstimatorProfile:
 
 PROFILES = {p.name: p for p in (
     EstimatorProfile("truth", position_noise_m=0.0, attitude_noise_rad=0.0, gyro_noise_rad_s=0.0, position_bias_m=0.0,
-                     attitude_bias_rad=0.0, bias_time_s=60.0, lag_s=0.0, summary="the plant's state, exactly"),
+                     attitude_bias_rad=0.0, bias_time_s=60.0, lag_s=0.0, accel_noise_m_s2=0.0, accel_bias_m_s2=0.0,
+                     summary="the plant's state, exactly"),
     EstimatorProfile("mocap", position_noise_m=0.0005, attitude_noise_rad=0.001, gyro_noise_rad_s=0.003,
                      position_bias_m=0.0005, attitude_bias_rad=0.0005, bias_time_s=30.0, lag_s=0.002,
                      summary="motion capture indoors: millimetres, a few milliseconds late"),
@@ -83,6 +90,12 @@ class Estimator:
         self._att_raw = rng.standard_normal((n, 3)) * self._att_sigma
         self.position_bias_m = self._pos_raw.copy()
         self.attitude_bias_rad = self._att_raw.copy()
+        self.accel_bias_m_s2 = rng.standard_normal((n, 3)) * prof.accel_bias_m_s2
+
+    def accelerometer(self, specific_force_b: np.ndarray) -> np.ndarray:
+        """What the accelerometers read (N, 3) [m/s^2, body frame] when they feel ``specific_force_b``:
+        the raw sensor, not lagged, with its bias and noise."""
+        return specific_force_b + self.accel_bias_m_s2 + self.profile.accel_noise_m_s2 * self.rng.standard_normal((self.n, 3))
 
     def report(self, t_s: float, y: np.ndarray, rates_b: np.ndarray, velocity: np.ndarray | None = None):
         """From the truth at time t_s [s] (y: (N, 6) Euler angles [rad] and position [m]; body rates

@@ -22,7 +22,7 @@ from triswarm.protocol.plan import Plan
 from triswarm.protocol.wind import Wind
 
 from .estimator import Estimator, EstimatorProfile
-from .physics import RATE_B, Plant
+from .physics import RATE_B, SENSOR_COLUMNS, Plant
 
 
 MAX_DISTANCE_M = 1e4
@@ -38,6 +38,8 @@ class SensorNoise:
     attitude_rad: float = 0.005
     gyro_rad_s: float = 0.01
     """Per body axis: a MEMS gyro's noise at 200 Hz."""
+    accel_m_s2: float = 0.1
+    """Per body axis: an accelerometer's noise at 200 Hz, the airframe's vibration in it."""
 
 
 @dataclass(frozen=True)
@@ -193,14 +195,19 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
             diverged_drone = int(np.flatnonzero(bad)[0]) + 1
             break
         rates = plant.state[:, RATE_B].copy()
+        accel = plant.sensors()[:, SENSOR_COLUMNS["specific_force_b"]] if ctrl.measured_accel else None
         if estimator is not None:
             y, rates, _ = estimator.report(t, y, rates)
+            if accel is not None:
+                accel = estimator.accelerometer(accel)
         if config.noise is not None:
             y[:, 0:3] += rng.normal(0.0, config.noise.attitude_rad, (n, 3))
             y[:, 3:6] += rng.normal(0.0, config.noise.position_m, (n, 3))
             rates += rng.normal(0.0, config.noise.gyro_rad_s, (n, 3))
+            if accel is not None:
+                accel += rng.normal(0.0, config.noise.accel_m_s2, (n, 3))
         # One tick of every agent, as a companion runs it (estimates refer to t + lead).
-        xhat = ctrl.observe(y, None, rates)
+        xhat = ctrl.observe(y, None, rates, accel)
         ref = reference_at(design, offsets.offsets, plan.leader_state, t, lead, dt)
         xi = xhat - ref.h
         topo = plan.schedule.at(ref.t_p)

@@ -137,6 +137,7 @@ class NumpyController:
         thrust = zm[:, :12] @ self.rfl.L[3:6].T + v @ self.rfl.M0[3:6].T + [0.0, 0.0, self.rfl.airframe.gravity_m_s2]
         air_v = zm[:, 0:3] - self.wind
         thrust += self.k_m * np.linalg.norm(air_v, axis=1, keepdims=True) * air_v  # (the drag's share)
+        thrust += self.z[:, 12:15]  # (asked before the disturbance estimate is cancelled)
         n2 = (thrust**2).sum(axis=1)
         step = np.where(n2 > 1.0, self.adapt_k * (self.z[:, 12:15] * thrust).sum(axis=1) / n2, 0.0)
         self.kappa = np.clip(self.kappa * (1.0 + step), 0.3, 3.0)

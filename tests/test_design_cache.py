@@ -17,7 +17,7 @@ from triswarm.companion.design_cache import keep_on_disk
 keep_on_disk(Path(sys.argv[1]))
 from triswarm.protocol.plan import plan_from_dict
 d = plan_from_dict(tomllib.loads(Path(sys.argv[2]).read_text())).design
-arrays = (d.K, d.P, d.F, d.P_bar, d.F_aug, d.F_rates)
+arrays = (d.K, d.P, d.F, d.P_bar, d.F_aug, *d.F_measured)
 print(json.dumps({"bits": hashlib.sha256(b"".join(a.tobytes() for a in arrays)).hexdigest(),
                   "control": "control" in sys.modules}))
 """
@@ -35,7 +35,8 @@ def test_kept_solutions_are_the_same_bits_without_python_control(tmp_path):
     kept.mkdir()
     first = design(kept)
     assert first["control"] is True
-    assert len(list(kept.iterdir())) == 4  # K (89), F (98), and the two observers' gains it runs
+    assert len(list(kept.iterdir())) == 6  # K (89), F (98), and the observers' gains it runs: alone, with rates,
+    # with the acceleration, with both
     second = design(kept)
     assert second == {"bits": first["bits"], "control": False}
     (tmp_path / "a-file").write_text("")

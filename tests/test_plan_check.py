@@ -249,7 +249,8 @@ def test_separation_flag(tmp_path):
 def test_plan_check_says_and_flies_the_drag_term_of_a_plan_in_still_air(tmp_path):
     """The case study with [wind] (still air): the controllers cancel the drag at the wind's air
     density, and the flight keeps the paper's bounds; told there is no air ([controller]
-    air_density_kg_m3 = 0) they do not, and the flight breaks them (test_wind_formation has the numbers)."""
+    air_density_kg_m3 = 0) and given no accelerometer (accelerometer = false: it would measure the
+    drag) they do not, and the flight breaks them (test_wind_formation has the numbers)."""
     still = [("thrust_adaptation_rate_1_s = 3.0\n", "thrust_adaptation_rate_1_s = 3.0\n\n[wind]\nspeed_m_s = 0.0\n"
               "air_density_kg_m3 = 1.2\n")]
     r = plan_check(paper_plan_variant(tmp_path, still), "--json")
@@ -259,9 +260,11 @@ def test_plan_check_says_and_flies_the_drag_term_of_a_plan_in_still_air(tmp_path
     r = plan_check(paper_plan_variant(tmp_path, still), "--no-simulate")  # (flown just above)
     assert "rho = 1.2 kg/m^3, C_d A = 0.02 m^2" in r.stdout, r.stdout
     off = paper_plan_variant(tmp_path, [(still[0][0], "thrust_adaptation_rate_1_s = 3.0\nair_density_kg_m3 = 0.0\n"
+                                         "accelerometer = false\n"
                                          + still[0][1].split("\n", 1)[1])])
     r = plan_check(off, "--json", "--no-simulate")
     assert json.loads(r.stdout)["controller"]["air_density_kg_m3"] == 0.0
+    assert json.loads(r.stdout)["controller"]["accelerometer"] is False
     assert "past the 0.1 m bound" in refused(plan_check(off), off)
     r = plan_check(PAPER_PLAN_FILE, "--no-simulate")
     assert "none (flown in no air: the paper's law)" in r.stdout

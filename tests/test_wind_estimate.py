@@ -1,4 +1,6 @@
-"""The controllers' wind estimate, in-process on simulated time with seeds: it finds a steady wind
+"""The controllers' wind estimate, in-process on simulated time with seeds, in the law without an
+accelerometer ([controller] accelerometer = false: a flight controller that streams none; with one
+the accelerometer measures what the wind does, tests/test_accelerometer.py): it finds a steady wind
 (the plant's, an independent truth), the circling case study then flies as in no air, and the worst
 air of docs/wind.md (12 m/s, severe turbulence, a 6 m/s gust) and an 8 m/s wind with moderate
 turbulence at 50 drones, which diverged without it, stay bounded. Each flight also runs with the
@@ -18,6 +20,7 @@ from triswarm.sitl.simulation import SimConfig, simulate
 def fly(n_drones: int, wind: Wind, wind_estimate_rate_1_s: float | None = None, seed: int = 0):
     """The case study resized to n_drones (``triswarm sim --drones N``), flown its 60 s in wind."""
     plan = load_plan("paper-hexagon", n_drones)
+    plan = dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, accelerometer=False))
     if wind_estimate_rate_1_s is not None:
         plan = dataclasses.replace(plan, controller=dataclasses.replace(plan.controller,
                                                                         wind_estimate_rate_1_s=wind_estimate_rate_1_s))

@@ -10,6 +10,7 @@ across the seeds, or the first divergence. Prints the markdown table of docs/win
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,8 +27,9 @@ AIRS = {"still air": None,
         "8 m/s + moderate": Wind(speed_m_s=8.0, turbulence_sigma_w_m_s=turbulence_sigma_w("moderate", "turbulence"))}
 
 
-def worst(n: int, prof, wind, seeds: int) -> str:
+def worst(n: int, prof, wind, seeds: int, accelerometer: bool) -> str:
     plan = load_plan(str(ROOT / "examples" / "paper-hexagon.toml"), n)
+    plan = dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, accelerometer=accelerometer))
     pos = att = 0.0
     for seed in range(seeds):
         r = simulate(plan, SimConfig(duration_s=60.0, estimator=prof, wind=wind, seed=seed))
@@ -42,13 +44,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="6,24,50")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--accelerometer", choices=("on", "off"), default="on",
+                    help="the controllers' accelerometer ([controller] accelerometer)")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     print("| drones | air | " + " | ".join(PROFILES) + " |")
     print("|---|---|" + "---|" * len(PROFILES))
     for n in sizes:
         for air, wind in AIRS.items():
-            cells = [worst(n, prof, wind, args.seeds) for prof in PROFILES.values()]
+            cells = [worst(n, prof, wind, args.seeds, args.accelerometer == "on") for prof in PROFILES.values()]
             print(f"| {n} | {air} | " + " | ".join(cells) + " |", flush=True)
 
 

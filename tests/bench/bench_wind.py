@@ -67,6 +67,11 @@ def with_drag_term(plan, on: bool):
     return dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, air_density_kg_m3=0.0))
 
 
+def with_accelerometer(plan, on: bool):
+    """The plan with the controllers taking the accelerometer (on) or not."""
+    return dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, accelerometer=on))
+
+
 def within(result, bound: str) -> bool:
     pos, att, diverged = result
     return diverged is None and pos <= BOUNDS[bound][0] and att <= BOUNDS[bound][1]
@@ -82,6 +87,8 @@ def main() -> None:
     ap.add_argument("--resolution-m-s", type=float, default=0.5, help="bisection resolution of the break speeds")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drag-term", default="on,off", help="comma-separated, of: on, off (the controllers' drag term)")
+    ap.add_argument("--accelerometer", choices=("on", "off"), default="on",
+                    help="the controllers' accelerometer ([controller] accelerometer)")
     args = ap.parse_args()
     threads = {k: os.environ.get(k, "unset") for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")}
     print(f"python {platform.python_version()} on {platform.machine()}, {os.cpu_count()} cpus, threads {threads}")
@@ -95,6 +102,7 @@ def main() -> None:
             raise SystemExit(f"--drag-term takes on and off, got {term!r}")
         source, drones = SCENARIOS[scenario_label]
         plan = with_drag_term(load_plan(str(ROOT / source) if source.endswith(".toml") else source, drones), term == "on")
+        plan = with_accelerometer(plan, args.accelerometer == "on")
         label = f"{scenario_label}, drag term {term}"
         scenario = f"{source}" + (f" --drones {drones}" if drones else "")
         if term == "off":
