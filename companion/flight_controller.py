@@ -35,7 +35,7 @@ from .autopilots.registry import pick
 from .clock import Answers, FcClock
 from .links import MavLink
 from .px4_link import Px4ZenohLink, is_px4_zenoh
-from .telemetry import Assembler, Sample, attitude_of, gyro_of, position_of
+from .telemetry import Assembler, Sample, accel_of, attitude_of, gyro_of, position_of
 from .timesync import EVERY_S as TIMESYNC_EVERY_S
 from .timesync import TimeSync
 
@@ -200,6 +200,8 @@ class FlightController:
                 asm.take_position(t_us, (x + dx, y + dy, z + dz), velocity, t_rx)
         if t == "HIGHRES_IMU":
             asm.take_gyro(t_us, gyro_of(msg), t_rx)
+        if t in ("HIGHRES_IMU", "SCALED_IMU"):
+            asm.take_accel(t_us, accel_of(msg), t_rx)
         s = asm.sample(t_rx)
         if s is not None:
             self._sample(s)
@@ -379,4 +381,5 @@ class FlightController:
         return self.clock.now()
 
 
-_TELEMETRY = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "ODOMETRY", "HIGHRES_IMU"})
+_TELEMETRY = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "ODOMETRY", "HIGHRES_IMU",
+                        "SCALED_IMU"})

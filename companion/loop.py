@@ -167,7 +167,8 @@ class ControlLoop:
             if a.flight.in_flight and a.bank is not None:
                 try:
                     for old in samples[:-1]:
-                        a.bank.hold_tick(np.array([old.y]), [a.row], np.array([old.rate_b_rad_s]))
+                        a.bank.hold_tick(np.array([old.y]), [a.row], np.array([old.rate_b_rad_s]),
+                                         np.array([old.accel_b_m_s2]))
                 except Exception:
                     a.tick_failed()
             half = 0.5 / a.rate_hz
@@ -193,7 +194,8 @@ class ControlLoop:
         for bank, group in by_bank.items():
             try:
                 xhat = bank.observe(np.array([t.sample.y for t in group]), [t.agent.row for t in group],
-                                    np.array([t.sample.rate_b_rad_s for t in group]))
+                                    np.array([t.sample.rate_b_rad_s for t in group]),
+                                    np.array([t.sample.accel_b_m_s2 for t in group]))
             except Exception:
                 for t in group:
                     t.agent.tick_failed()

@@ -10,7 +10,10 @@ So the companion takes each stream as it comes:
   attitude instant is a tick, the stream the loop runs on;
 - position and velocity (LOCAL_POSITION_NED or ODOMETRY): the newest one is brought to the tick's
   instant with its own velocity, p(t) = p_k + v_k (t - t_k), forwards or backwards;
-- gyro rates (HIGHRES_IMU) when the attitude message carries none.
+- gyro rates (HIGHRES_IMU) when the attitude message carries none;
+- the accelerometer's specific force (HIGHRES_IMU, SCALED_IMU), taken at a tick when it is within
+  ``MAX_ACCEL_AGE_US`` of the attitude's instant (the observer relates it to the input of that
+  instant).
 
 A sample whose newest position is older than ``MAX_POSITION_AGE_US`` has no position (NaN): the
 observer then runs on its model, and the companion says that the stream stopped. Messages older
@@ -22,7 +25,7 @@ starts again) or a jump; else it was out of place, and is dropped and counted.
 
 Times are the flight controller's boot clock in microseconds (ms-stamped messages times 1000).
 No I/O: the flight-controller face (``flight_controller.py``) feeds it parsed messages, read here into the paper's
-frames (``attitude_of``, ``position_of``, ``gyro_of``).
+frames (``attitude_of``, ``position_of``, ``gyro_of``, ``accel_of``).
 """
 
 from __future__ import annotations
@@ -46,7 +49,11 @@ ones out of order until the clock caught up with it, and one behind would have r
 stream."""
 MAX_POSITION_AGE_US = 250_000
 """A position older than this at a tick is not used: the observer runs on its model meanwhile."""
+MAX_ACCEL_AGE_US = 10_000
+"""A specific force further than this from a tick's attitude instant is not used at that tick."""
 NAN3 = (math.nan, math.nan, math.nan)
+STANDARD_GRAVITY_M_S2 = 9.80665
+"""What SCALED_IMU's milli-g are thousandths of."""
 
 
 def attitude_of(msg) -> tuple[tuple, tuple]:
@@ -83,6 +90,13 @@ def gyro_of(msg) -> tuple:
     return msg.xgyro, -msg.ygyro, -msg.zgyro
 
 
+def accel_of(msg) -> tuple:
+    """HIGHRES_IMU's [m/s^2] or SCALED_IMU's [mG] accelerometer (FRD) as the paper's body-frame
+    specific force [m/s^2] (FLU)."""
+    scale = 1.0 if msg.get_type() == "HIGHRES_IMU" else STANDARD_GRAVITY_M_S2 * 1e-3
+    return msg.xacc * scale, -msg.yacc * scale, -msg.zacc * scale
+
+
 @dataclass(slots=True)
 class Sample:
     """One tick's measurements, in the paper's frames (earth: x north, y west, z up; body FLU)."""
@@ -93,6 +107,7 @@ class Sample:
     position_e_m: tuple              # brought to boot_us (NaN: no recent position)
     velocity_e_m_s: tuple
     position_lag_us: int             # how far the position was brought (boot_us - its stamp)
+    accel_b_m_s2: tuple = NAN3       # the accelerometer's specific force, body frame (NaN if none near)
 
     @property
     def boot_ms(self) -> int:
@@ -177,6 +192,7 @@ class Assembler:
         self.attitude = _Stream()   # (eta, rates)
         self.position = _Stream()   # (p, v)
         self.gyro = _Stream()       # rates
+        self.accel = _Stream()      # specific force
         self._sampled_us = -1
 
     def take_attitude(self, t_us: int, eta_rad: tuple, rate_b_rad_s: tuple | None, t_rx: float) -> None:
@@ -189,11 +205,14 @@ class Assembler:
     def take_gyro(self, t_us: int, rate_b_rad_s: tuple, t_rx: float) -> None:
         self.gyro.take(t_us, rate_b_rad_s, self.counters, "gyro", t_rx)
 
+    def take_accel(self, t_us: int, accel_b_m_s2: tuple, t_rx: float) -> None:
+        self.accel.take(t_us, accel_b_m_s2, self.counters, "accel", t_rx)
+
     def restart(self) -> None:
         """A restarted flight controller (its attitudes run on a new clock): the other streams
         start again too."""
         self.counters["fc_clock_restarted"] += 1
-        self.position, self.gyro = _Stream(), _Stream()
+        self.position, self.gyro, self.accel = _Stream(), _Stream(), _Stream()
         self._sampled_us = -1
 
     def sample(self, t_rx: float) -> Sample | None:
@@ -206,10 +225,11 @@ class Assembler:
         eta, rates = att.value
         if rates is None:
             rates = self.gyro.value if self.gyro.t_us >= 0 and abs(self.gyro.t_us - t) <= MAX_POSITION_AGE_US else NAN3
+        accel = self.accel.value if self.accel.t_us >= 0 and abs(self.accel.t_us - t) <= MAX_ACCEL_AGE_US else NAN3
         p, v = self.position.value
         lag = t - self.position.t_us
         if abs(lag) > MAX_POSITION_AGE_US:
             self.counters["samples_without_position"] += 1
-            return Sample(t_rx, t, eta, rates, NAN3, NAN3, lag)
+            return Sample(t_rx, t, eta, rates, NAN3, NAN3, lag, accel)
         dt = lag * 1e-6
-        return Sample(t_rx, t, eta, rates, (p[0] + v[0] * dt, p[1] + v[1] * dt, p[2] + v[2] * dt), v, lag)
+        return Sample(t_rx, t, eta, rates, (p[0] + v[0] * dt, p[1] + v[1] * dt, p[2] + v[2] * dt), v, lag, accel)

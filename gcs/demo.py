@@ -52,7 +52,8 @@ never worse than these in the firmware's own telemetry (its EKF's estimates)."""
 FIRMWARES = {"ardupilot": "ArduPilot", "px4": "PX4"}
 COMPANION_LANDING_S = 120.0
 """The companions' landings descend at their LAND_SPEED, 0.5 m/s: 41 s from the case study's 20 m."""
-SENSOR_NOISE = (("NOISE_POS_M", 0.005), ("NOISE_VEL_MS", 0.01), ("NOISE_ATT_RAD", 0.001), ("NOISE_GYRO_RADS", 0.005))
+SENSOR_NOISE = (("NOISE_POS_M", 0.005), ("NOISE_VEL_MS", 0.01), ("NOISE_ATT_RAD", 0.001), ("NOISE_GYRO_RADS", 0.005),
+                ("NOISE_ACC_MS2", 0.1))
 """The estimators' noise the demo's flight controllers report with (1 sigma; what an RTK-GNSS-aided
 EKF gives), in every message, the ground station's included."""
 

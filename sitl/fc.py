@@ -61,6 +61,7 @@ def param_specs(af: Airframe, profile: Profile = TRISWARM) -> list[ParamSpec]:
         ParamSpec("NOISE_VEL_MS", 0.0, 0.0, 10.0, "velocity noise, 1 sigma [m/s]"),
         ParamSpec("NOISE_ATT_RAD", 0.0, 0.0, 1.0, "attitude noise, 1 sigma [rad]"),
         ParamSpec("NOISE_GYRO_RADS", 0.0, 0.0, 10.0, "body-rate noise, 1 sigma [rad/s]"),
+        ParamSpec("NOISE_ACC_MS2", 0.0, 0.0, 100.0, "accelerometer noise, 1 sigma [m/s^2]"),
         ParamSpec("FS_TIMEOUT_S", 0.3, 0.02, 60.0, "armed without actuator command this long: hold"),
         ParamSpec("FS_LAND_DELAY_S", 5.0, 0.0, 600.0, "failsafe hold this long, then land"),
         ParamSpec("LAND_SPEED_M_S", 0.7, 0.1, 5.0, "descent speed when landing [m/s]"),

@@ -133,13 +133,18 @@ class SitlSwarm:
                 self.time_s, np.concatenate([col["euler_rad"], col["position_m"]], axis=1), col["rate_b_rad_s"],
                 col["velocity_e_m_s"])
             col["euler_rad"], col["position_m"] = y[:, 0:3], y[:, 3:6]
+            col["specific_force_b"] = self.estimator.accelerometer(col["specific_force_b"])
             col["velocity_b_m_s"] = np.einsum("nji,nj->ni", model.rotation_body_to_earth(col["euler_rad"]), col["velocity_e_m_s"])
             col["quaternion"] = quaternion_from_euler(col["euler_rad"])
         version = sum(fc.params_version for fc in self.fcs)
         if self._noise[0] != version:
             self._noise = (version, np.array([[fc.params["NOISE_POS_M"], fc.params["NOISE_VEL_MS"], fc.params["NOISE_ATT_RAD"],
-                                               fc.params["NOISE_GYRO_RADS"]] for fc in self.fcs]))
+                                               fc.params["NOISE_GYRO_RADS"], fc.params["NOISE_ACC_MS2"]] for fc in self.fcs]))
         sig = self._noise[1]
+        if np.any(sig[:, 4] > 0):  # (a stream of its own: the others' draws are as without it)
+            col["specific_force_b"] = col["specific_force_b"] + sig[:, 4, None] * np.random.default_rng(
+                (self.seed, self.steps, 1)).standard_normal((self.n, 3))
+        sig = sig[:, :4]
         if np.any(sig > 0):  # (drawn per step from the seed: the same whenever a snapshot is taken)
             noise = np.random.default_rng((self.seed, self.steps)).standard_normal((self.n, 4, 3)) * sig[:, :, None]
             col["position_m"] = col["position_m"] + noise[:, 0]

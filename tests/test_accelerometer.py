@@ -34,13 +34,14 @@ def fly_model(design, d_e: np.ndarray, bias_b: np.ndarray, ticks: int, accelerom
     # x_r(t) for the constant input d: the augmented system [[A, E], [0, 0]]
     E = np.zeros((12, 3))
     E[0:3] = np.eye(3)
-    M = np.block([[design.A_r, E], [np.zeros((3, 15))]])
-    for k in range(ticks):
-        x = scipy.linalg.expm(M * k * ctrl.dt_s) @ np.r_[xr0, d_e]
+    step = scipy.linalg.expm(np.block([[design.A_r, E], [np.zeros((3, 15))]]) * ctrl.dt_s)
+    x = np.r_[xr0, d_e]
+    for _ in range(ticks):
         xr = x[:12]
         accel_e = design.A_r[0:3] @ xr + d_e
         f = specific_force_b(xr, accel_e) + bias_b
         ctrl.observe(xr[None, 6:12], None, None, f[None, :])
+        x = step @ x
     return ctrl, xr
 
 

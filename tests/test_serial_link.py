@@ -222,7 +222,8 @@ def test_two_drones_fly_the_paper_plan_over_serial_lines(tmp_path, paper_spec):
             assert n_down[name] == pytest.approx(200.0, abs=0.2) and size_down[name] == {FRAME_BYTES[name]}, name
         assert n_up["SET_ACTUATOR_CONTROL_TARGET"] == pytest.approx(200.0, abs=0.2)
         assert size_up["SET_ACTUATOR_CONTROL_TARGET"] == {FRAME_BYTES["SET_ACTUATOR_CONTROL_TARGET"]}
-        assert not {"ATTITUDE_QUATERNION", "ODOMETRY", "HIGHRES_IMU"} & set(n_down), n_down  # (turned off: unused)
+        assert n_down["HIGHRES_IMU"] == pytest.approx(200.0, abs=0.2)  # (its accelerometer: the observer's)
+        assert not {"ATTITUDE_QUATERNION", "ODOMETRY"} & set(n_down), n_down  # (turned off: unused)
         assert 200 * (FRAME_BYTES["ATTITUDE"] + FRAME_BYTES["LOCAL_POSITION_NED"]) <= rate_down <= BUDGET_FRACTION * LINE_BYTES_S
         assert 200 * FRAME_BYTES["SET_ACTUATOR_CONTROL_TARGET"] <= rate_up <= BUDGET_FRACTION * LINE_BYTES_S
 
