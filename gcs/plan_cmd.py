@@ -147,7 +147,7 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
                        "thrust_adaptation_rate_1_s": plan.controller.thrust_adaptation_rate_1_s,
                        "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind),
                        "wind_estimate_rate_1_s": plan.controller.wind_estimate_rate_1_s,
-                       "accelerometer": plan.controller.accelerometer},
+                       "accelerometer": plan.controller_accelerometer(plan.wind)},
         "flight": flight.summary() if flight is not None else {"flown": False},
         "ok": flight is not None,
     }

@@ -111,9 +111,10 @@ class FormationController:
     def for_plan(cls, plan: "Plan", n_agents: int, rate_hz: float, wind: "Wind | None",
                  delay_s: float | None = None, measured_rates: bool = False) -> "FormationController":
         """The controller of ``plan`` flown in ``wind`` (None: no air), with the plan's design,
-        thrust adaptation, wind estimate and the air density ``Plan.controller_air_density_kg_m3`` gives: the one
+        thrust adaptation, wind estimate, and the air density and accelerometer that
+        ``Plan.controller_air_density_kg_m3`` and ``Plan.controller_accelerometer`` give: the one
         way a simulation and the companions make theirs."""
-        return cls(plan.design, n_agents, rate_hz, delay_s, measured_accel=plan.controller.accelerometer,
+        return cls(plan.design, n_agents, rate_hz, delay_s, measured_accel=plan.controller_accelerometer(wind),
                    thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
                    air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates,
                    wind_estimate_rate_1_s=plan.controller.wind_estimate_rate_1_s)

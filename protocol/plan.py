@@ -18,7 +18,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off), R_bar_accel_diag (3)
     [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled),
-                      accelerometer (true: the observer takes the flight controller's specific force)
+                      accelerometer (the observer takes the flight controller's specific force; default: in air)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s, rotor_speed_margin_pct,
                       tilt_margin_deg, turbulence_sigmas (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
@@ -119,11 +119,12 @@ class ControllerSettings:
     law) when it is flown in no air (``Plan.controller_air_density_kg_m3``)."""
     wind_estimate_rate_1_s: float = 1.0
     """Rate [1/s] of the controllers' horizontal wind estimate, in air (0: drag cancelled as in still air)."""
-    accelerometer: bool = True
+    accelerometer: bool | None = None
     """The controllers take the specific force their flight controller's accelerometer measures
-    (HIGHRES_IMU, SCALED_IMU) as three more outputs of the observer: the disturbance measured, not
-    only inferred from the position (``FormationController`` ``measured_accel``); needs the
-    disturbance estimate on. A tick without a reading runs the observer without it."""
+    (HIGHRES_IMU) as three more outputs of the observer: the disturbance measured, not only
+    inferred from the position (``FormationController`` ``measured_accel``); needs the disturbance
+    estimate on. A tick without a reading runs the observer without it. None: in air, and not in
+    no air (``Plan.controller_accelerometer``)."""
 
 
 @dataclass(frozen=True)
@@ -187,6 +188,15 @@ class Plan:
         if self.controller.air_density_kg_m3 is not None:
             return self.controller.air_density_kg_m3
         return 0.0 if wind is None else wind.air_density_kg_m3
+
+    def controller_accelerometer(self, wind: Wind | None) -> bool:
+        """Whether the controllers take the accelerometer when the plan is flown in ``wind`` (as
+        ``controller_air_density_kg_m3``): [controller] accelerometer when the plan gives it; else
+        in air (still air included), and not in no air, where the controllers fly the paper's law to
+        the bit."""
+        if self.controller.accelerometer is not None:
+            return self.controller.accelerometer
+        return wind is not None
 
     def leader_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """x0(t) and its derivative, (12,) each."""
@@ -345,9 +355,9 @@ class _Fields:
         except ParameterError as exc:
             raise PlanError(str(exc)) from None
 
-    def flag(self, key: str, default: bool) -> bool:
+    def flag(self, key: str, default: bool | None = None) -> bool | None:
         value = self.get(key, default)
-        if not isinstance(value, bool):
+        if value is not default and not isinstance(value, bool):
             raise PlanError(f"{self.where(key)} must be true or false, got {value!r}")
         return value
 
@@ -538,7 +548,7 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
                               cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True),
                               cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None,
                               cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True),
-                              cf.flag("accelerometer", True))
+                              cf.flag("accelerometer"))
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),

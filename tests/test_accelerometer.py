@@ -1,5 +1,5 @@
-"""The accelerometer as three more outputs of the observer ([controller] accelerometer, on by
-default): on trajectories of the model, where the truth is known in closed form, it measures a
+"""The accelerometer as three more outputs of the observer ([controller] accelerometer, on in air
+by default): on trajectories of the model, where the truth is known in closed form, it measures a
 disturbance at once where the position alone takes its time, and tells its own bias from a
 disturbance; in-process on simulated time, it holds the case study's formation in 8 m/s of wind
 with moderate turbulence (docs/wind.md has the tables)."""
@@ -85,3 +85,20 @@ def test_the_case_study_in_8_m_s_with_moderate_turbulence_keeps_the_goal(drones,
     perf, _ = metrics.judge(plan, result.t_s, result.position_m, result.euler_rad,
                             metrics.settled_window_start_s(plan, 60.0))
     assert perf.worst_position_m < 0.25 and perf.worst_attitude_rad < 0.05, perf
+
+
+def test_the_accelerometer_is_taken_in_air_unless_the_plan_says(paper_spec):
+    """[controller] accelerometer: by default in air (a [wind] table, still air included) and not in
+    no air, where the controllers fly the paper's law to the bit (its 18-state observer); the plan's
+    word wins either way."""
+    from triswarm.protocol.plan import plan_from_dict
+
+    still = Wind()
+    for said, wind, taken in ((None, None, False), (None, still, True), (False, still, False), (True, None, True)):
+        spec = dict(paper_spec, controller=dict(paper_spec["controller"]))
+        if said is not None:
+            spec["controller"]["accelerometer"] = said
+        plan = plan_from_dict(spec)
+        ctrl = FormationController.for_plan(plan, 2, 200.0, wind)
+        assert plan.controller_accelerometer(wind) is taken and ctrl.measured_accel is taken
+        assert ctrl.n_z == (21 if taken else 18)

@@ -57,6 +57,8 @@ def spec_with(paper_spec, path, value):
     (("topology", "switch_period_s"), 0.0, r"topology.switch_period_s must be positive"),
     (("entry", "blend_s"), -1.0, r"entry.blend_s must be positive"),
     (("controller", "rate_hz"), float("inf"), r"controller.rate_hz must be a finite number"),
+    (("controller", "accelerometer"), 1, r"controller.accelerometer must be true or false, got 1"),
+    (("design", "R_bar_accel_diag"), [0.01, 0.0, 0.01], r"design weight R_bar_accel must be 3 positive numbers"),
     (("controller", "air_density_kg_m3"), -1.2, r"controller.air_density_kg_m3 must not be negative, got -1.2"),
     (("wind", "speed_m_s"), -4.0, r"wind.speed_m_s must not be negative, got -4.0"),
     (("wind", "turbulence"), "gale", r"wind.turbulence must be none, light, moderate, severe or sigma_w in m/s"),
