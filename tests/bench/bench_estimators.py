@@ -27,9 +27,10 @@ AIRS = {"still air": None,
         "8 m/s + moderate": Wind(speed_m_s=8.0, turbulence_sigma_w_m_s=turbulence_sigma_w("moderate", "turbulence"))}
 
 
-def worst(n: int, prof, wind, seeds: int, accelerometer: bool) -> str:
+def worst(n: int, prof, wind, seeds: int, accelerometer: bool | None) -> str:
     plan = load_plan(str(ROOT / "examples" / "paper-hexagon.toml"), n)
-    plan = dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, accelerometer=accelerometer))
+    if accelerometer is not None:
+        plan = dataclasses.replace(plan, controller=dataclasses.replace(plan.controller, accelerometer=accelerometer))
     pos = att = 0.0
     for seed in range(seeds):
         r = simulate(plan, SimConfig(duration_s=60.0, estimator=prof, wind=wind, seed=seed))
@@ -44,15 +45,16 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="6,24,50")
     ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--accelerometer", choices=("on", "off"), default="on",
-                    help="the controllers' accelerometer ([controller] accelerometer)")
+    ap.add_argument("--accelerometer", choices=("on", "off"), default=None,
+                    help="the controllers' accelerometer ([controller] accelerometer; default: the plan's, on in air)")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     print("| drones | air | " + " | ".join(PROFILES) + " |")
     print("|---|---|" + "---|" * len(PROFILES))
     for n in sizes:
         for air, wind in AIRS.items():
-            cells = [worst(n, prof, wind, args.seeds, args.accelerometer == "on") for prof in PROFILES.values()]
+            on = None if args.accelerometer is None else args.accelerometer == "on"
+            cells = [worst(n, prof, wind, args.seeds, on) for prof in PROFILES.values()]
             print(f"| {n} | {air} | " + " | ".join(cells) + " |", flush=True)
 
 
