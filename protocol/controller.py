@@ -21,12 +21,17 @@ What this adds to the paper's law, and why (see docs/control-design.md):
   then the wind's share alone.
 * Body rates. Measured body rates can be three more outputs of the observer (``measured_rates``);
   off by default: they cost half the servo-delay margin (docs/control-design.md).
+* Accelerometer. With ``measured_accel`` (a plan's default in air) the measured specific force,
+  turned to the earth frame, less the acceleration the model's input explains, is three more
+  outputs of the observer with the disturbance in them, and the accelerometer's bias three more
+  states (``design.accel_model``): the disturbance is measured. A tick without it runs without.
 * Servo range. A drone with a rotor held at the servo range's edge commits the v its rotors then
   deliver (``kernels.input_shortfall_v``), so the observer's disturbance estimate does not wind up
   on the actuators' shortfall; with no rotor at the edge, v itself, to the bit.
 * Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
-  translational disturbance along the commanded specific thrust (the idea of PX4's hover-thrust
-  estimator) and divided out of u, so a heavier drone or a weaker propeller is flown as designed.
+  translational disturbance along the specific thrust asked before the disturbance is cancelled
+  (the idea of PX4's hover-thrust estimator) and divided out of u, so a heavier drone or a weaker
+  propeller is flown as designed.
 
 Everything here is arrays in, arrays out; time and measurements come in as arguments.
 """
@@ -39,7 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg
 
-from .design import RATES, Design, accel_model, measured_outputs
+from .design import Design, accel_model
 from . import kernels
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL
@@ -180,7 +185,7 @@ class FormationController:
             m = Am.shape[0]
             if m > n:  # (an accelerometer's gains in a controller that does not take it)
                 continue
-            idx = measured_outputs(measured if design.estimates_disturbance else measured & RATES)
+            idx = design.outputs_measured(measured)
             Phi, Gv, Gy0, Gy1 = _zoh_foh(Am - design.c * Fm @ Cm, Bm, design.c * Fm, self.dt_s)
             self._Phi_m[measured][:m, :m], self._Gv_m[measured][:m] = Phi, Gv
             self._Gy0_m[measured][:m, idx], self._Gy1_m[measured][:m, idx] = Gy0, Gy1

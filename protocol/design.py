@@ -138,14 +138,17 @@ class Design:
         """(A, B, C, F) of the observer with the outputs ``measured`` (``RATES`` | ``ACCEL``) as well:
         y = (eta, lambda[, eta_dot][, R(eta) f - g e_z - B_r v]). With the acceleration, the model
         is ``observer_model``'s with the accelerometer's bias as three more states (``accel_model``)."""
-        if not self.estimates_disturbance:
-            measured &= RATES
         A, B, C, _ = self.observer_model()
-        if measured & ACCEL:
+        if self.outputs_measured(measured)[-1] == 11:
             A, B, C = accel_model(A, B, C)
         else:
             C = full_output(A, C)
-        return A, B, C[measured_outputs(measured)], self.F_measured[measured]
+        return A, B, C[self.outputs_measured(measured)], self.F_measured[measured]
+
+    def outputs_measured(self, measured: int) -> list[int]:
+        """The rows of ``full_output`` the observer takes on a tick that measures ``measured``
+        (``RATES`` | ``ACCEL``): without a disturbance estimate the acceleration is not taken."""
+        return measured_outputs(measured if self.estimates_disturbance else measured & RATES)
 
     def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented

@@ -120,11 +120,8 @@ class ControllerSettings:
     wind_estimate_rate_1_s: float = 1.0
     """Rate [1/s] of the controllers' horizontal wind estimate, in air (0: drag cancelled as in still air)."""
     accelerometer: bool | None = None
-    """The controllers take the specific force their flight controller's accelerometer measures
-    (HIGHRES_IMU) as three more outputs of the observer: the disturbance measured, not only
-    inferred from the position (``FormationController`` ``measured_accel``); needs the disturbance
-    estimate on. A tick without a reading runs the observer without it. None: in air, and not in
-    no air (``Plan.controller_accelerometer``)."""
+    """The observer takes the specific force the accelerometer measures (``FormationController``
+    ``measured_accel``). None: in air, not in no air (``Plan.controller_accelerometer``)."""
 
 
 @dataclass(frozen=True)
