@@ -187,10 +187,8 @@ class Plan:
         return 0.0 if wind is None else wind.air_density_kg_m3
 
     def controller_accelerometer(self, wind: Wind | None) -> bool:
-        """Whether the controllers take the accelerometer when the plan is flown in ``wind`` (as
-        ``controller_air_density_kg_m3``): [controller] accelerometer when the plan gives it; else
-        in air (still air included), and not in no air, where the controllers fly the paper's law to
-        the bit."""
+        """Whether the controllers take the accelerometer in ``wind``: [controller] accelerometer if
+        given; else in air (still air too), not in no air (the paper's law to the bit)."""
         if self.controller.accelerometer is not None:
             return self.controller.accelerometer
         return wind is not None
