@@ -83,7 +83,8 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
             except AssertionError as exc:
                 said = [line for line in stack.log("companion-1").splitlines() if "companion " in line]
                 raise AssertionError(f"{exc}; flight over [{t_from}, {plan.duration_s}] s: {report}; "
-                                     f"the companions said:\n" + "\n".join(said[-40:])) from None
+                                     f"the companions said:\n" + "\n".join(said[-40:]) + "\n" +
+                                     firmware_said(tmp_path / "stack", (1, 2, 3))) from None
         disarmed = rec.now()
         history = {i: modes(rec, i) for i in (1, 2, 3)}
         heights = {i: rec.samples.tracks(start)[i].position_m[-1][2] for i in (1, 2, 3)}
@@ -100,6 +101,16 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
     assert all(ok for ok, _ in landing.values()), landing
     assert disarmed - asked <= down_s, (asked, disarmed)  # (on PX4's clock)
     assert all(h < 0.1 for h in heights.values()), heights
+
+
+def firmware_said(stack_dir, sysids) -> str:
+    """What each PX4 said on its console after it armed (its failsafes among it), for a failure's report."""
+    told = []
+    for i in sysids:
+        lines = (stack_dir / "firmware" / f"vehicle-{i}" / "firmware.log").read_text(errors="replace").splitlines()
+        armed = max((k for k, line in enumerate(lines) if "Armed by" in line), default=0)
+        told += [f"PX4 {i}: {line}" for line in lines[armed:] if line.strip()][:30]
+    return "\n".join(told)
 
 
 def subscriptions(router: str) -> dict[str, str]:
