@@ -277,6 +277,7 @@ class Agent:
         self.loop = asyncio.get_running_loop()
         self.plans.load(self.opts.plan)
         self.gcs.restore_signing_streams()
+        self.store.write_in_background(self._warn_from_thread)  # (a disk's wait must not stall the loop)
         tasks: list[asyncio.Task] = []
         try:
             try:
@@ -307,9 +308,18 @@ class Agent:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self.gcs.keep_signing_streams()
+            if not await asyncio.to_thread(self.store.close):
+                self.log.warning("the state folder did not take the newest state within 5 s of the stop")
             if self.bus is not None and self.bus.is_open:
                 self.bus.leave(self.id)
         return self.stats()
+
+    def _warn_from_thread(self, text: str) -> None:
+        """``warn`` from another thread (the state's writer): on the loop, while it runs."""
+        try:
+            self.loop.call_soon_threadsafe(self.warn, text)
+        except RuntimeError:  # (the loop is closed: the log keeps it)
+            self.log.warning(text)
 
     async def _mission_task(self) -> None:
         try:

@@ -4,12 +4,20 @@ and the signing key file it reads (as the ground station does).
 A state folder that cannot be written (read-only, full, a file's path taken by a folder) costs what
 it keeps, never the flight: ``StateStore`` counts the failed writes, says so once (``warn``) when
 writing starts to fail and once when it works again, and the companion flies on; a restart would
-then not find the newest mission."""
+then not find the newest mission.
+
+A write waits for the disk (fsync), which on a busy machine or an SD card takes from milliseconds
+to seconds: longer than a flight controller waits for its next command. So a companion's store
+writes in a thread of its own (``write_in_background``): the control loop hands it the newest data
+of each file and goes on; the files are written in the order they were handed over, and a file
+handed over again before it was written is written once, with the newest data."""
 
 from __future__ import annotations
 
 import json
 import os
+import threading
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -86,6 +94,58 @@ class StateStore:
         self.warn = warn or (lambda text: None)
         self.failed_writes = 0
         self._failing: set[Path] = set()
+        self._pending: dict[Path, dict | None] = {}
+        """In the background: the files to write (None: to remove), oldest first, newest data each."""
+        self._wake = threading.Condition()
+        self._writer: threading.Thread | None = None
+        self._closing = False
+
+    def write_in_background(self, notify: Callable[[str], None]) -> None:
+        """From now on, write in a thread of this store's own; what ``warn`` would hear goes to
+        ``notify`` from that thread (hand it to the caller's own thread). ``close`` ends it."""
+        if self._writer is None and self.path is not None:
+            self.warn = notify
+            self._writer = threading.Thread(target=self._write_pending, name="state-writer", daemon=True)
+            self._writer.start()
+
+    def close(self, timeout_s: float = 5.0) -> bool:
+        """Write what is pending and end the writing thread; False if the disk did not let it
+        finish within ``timeout_s``."""
+        if self._writer is None:
+            return True
+        with self._wake:
+            self._closing = True
+            self._wake.notify()
+        self._writer.join(timeout_s)
+        done = not self._writer.is_alive()
+        if done:
+            self._writer, self._closing = None, False
+        return done
+
+    def _put(self, path: Path, data: dict | None) -> bool:
+        """``data`` to ``path`` (None: remove it), now or, in the background, handed to the writing
+        thread: then False only if that file's last write failed (said once, as a failed write)."""
+        if self._writer is None:
+            return self._remove() if data is None else self._write(path, data)
+        with self._wake:
+            self._pending.pop(path, None)  # (handed over again: written at its new place in the order)
+            self._pending[path] = data
+            self._wake.notify()
+        return path not in self._failing
+
+    def _write_pending(self) -> None:
+        while True:
+            with self._wake:
+                while not self._pending and not self._closing:
+                    self._wake.wait()
+                if not self._pending:
+                    return
+                path = next(iter(self._pending))
+                data = self._pending.pop(path)
+            if data is None:
+                self._remove()
+            else:
+                self._write(path, data)
 
     def _write(self, path: Path, data: dict) -> bool:
         """Write ``data`` to ``path`` atomically; False (and said once) if the folder will not take it."""
@@ -116,14 +176,19 @@ class StateStore:
 
     def clear(self) -> None:
         if self.path is not None:
-            try:
-                self.path.unlink(missing_ok=True)
-            except OSError as exc:  # (read-only; a folder in its place)
-                self.failed_writes += 1
-                self.warn(f"cannot remove {self.path} ({exc.strerror or exc})")
+            self._put(self.path, None)
+
+    def _remove(self) -> bool:
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError as exc:  # (read-only; a folder in its place)
+            self.failed_writes += 1
+            self.warn(f"cannot remove {self.path} ({exc.strerror or exc})")
+            return False
+        return True
 
     def save(self, mission: Mission) -> bool:
-        return self.path is None or self._write(self.path, asdict(mission))
+        return self.path is None or self._put(self.path, asdict(mission))
 
     def load_signing_streams(self) -> dict:
         """The signing streams kept by ``save_signing_streams`` ({} if none, or unusable: ``problem``)."""
@@ -139,4 +204,4 @@ class StateStore:
             return {}
 
     def save_signing_streams(self, streams: dict) -> bool:
-        return self.signing_path is None or self._write(self.signing_path, streams)
+        return self.signing_path is None or self._put(self.signing_path, dict(streams))
