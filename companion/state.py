@@ -142,10 +142,11 @@ class StateStore:
                     return
                 path = next(iter(self._pending))
                 data = self._pending.pop(path)
-            if data is None:
-                self._remove()
-            else:
-                self._write(path, data)
+            try:
+                self._remove() if data is None else self._write(path, data)
+            except Exception as exc:  # (a bug, not the disk: said as one, and the writer goes on)
+                self.failed_writes += 1
+                self.warn(f"bug: writing {path} raised {exc!r}")
 
     def _write(self, path: Path, data: dict) -> bool:
         """Write ``data`` to ``path`` atomically; False (and said once) if the folder will not take it."""
