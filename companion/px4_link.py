@@ -118,6 +118,8 @@ class Px4ZenohLink:
         self._origin_said = 0.0
         self._asked_mode: int | None = None
         """The navigation state the face's newest DO_SET_MODE asked for."""
+        self._odometry_at: tuple[float, int] | None = None
+        """(time received [Unix s], PX4's stamp [us]) of the newest odometry."""
         self._mode_ack = None
         """(its accepted COMMAND_ACK, the navigation state) until a vehicle_status shows that state."""
 
@@ -196,6 +198,8 @@ class Px4ZenohLink:
         except ValueError:
             self.counters[f"drop_malformed_{topic}"] += 1
             return
+        if topic == "vehicle_odometry":
+            self._note_gap(t_rx, msg.timestamp_sample)
         try:
             out = getattr(self, f"_{topic}")(msg)
             out = [] if out is None else out if isinstance(out, list) else [out]
@@ -212,6 +216,16 @@ class Px4ZenohLink:
         finally:
             if self.after_read is not None:
                 self.after_read()
+
+    def _note_gap(self, t_rx: float, stamp_us: int) -> None:
+        """The longest wait between two odometries [ms, wall, as Zenoh handed them over], with how far
+        PX4's stamps moved across it [ms] and when it ended [Unix ms]: a silent PX4 (the stamps
+        moved as far) or a held link (they moved one period). In the link's counters."""
+        last, self._odometry_at = self._odometry_at, (t_rx, stamp_us)
+        if last is not None and (gap_ms := round(1e3 * (t_rx - last[0]))) > self.counters["odometry_gap_max_ms"]:
+            self.counters["odometry_gap_max_ms"] = gap_ms
+            self.counters["odometry_gap_stamps_ms"] = round((stamp_us - last[1]) / 1e3)
+            self.counters["odometry_gap_end_unix_ms"] = round(1e3 * t_rx)
 
     def _vehicle_odometry(self, m):
         frame = mavlink.MAV_FRAME_LOCAL_NED if m.pose_frame == px4.POSE_FRAME_NED else mavlink.MAV_FRAME_LOCAL_FRD
