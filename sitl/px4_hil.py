@@ -48,6 +48,8 @@ SENSOR_HZ = 250.0
 """HIL_SENSOR rate: PX4's simulated IMU rate (IMU_INTEG_RATE 250 in its SITL start-up)."""
 GPS_HZ = 10.0
 FIRMWARE_SILENT_S = 3.0
+CATCH_UP = 1.25
+"""A plant behind the wall clock runs at most this many simulated seconds per wall second."""
 OUTPUT_AGES_KEPT = 100_000
 """The newest outputs' ages kept for the run's statistics (over two minutes of six drones at PX4's 125 Hz)."""
 SIM_SYSID, SIM_COMPID = 0, 51
@@ -106,7 +108,7 @@ class HilPhysics:
         self.sensor_steps = 0
         self.on_sample = on_sample
         """Called with the plant's sensor rows after every sensor period (the truth log)."""
-        self.counters = {"bad_frames": 0, "left": 0, "joined": 0, "send_errors": 0}
+        self.counters = {"bad_frames": 0, "left": 0, "joined": 0, "send_errors": 0, "behind_max_ms": 0}
         self.output_age_s: collections.deque[float] = collections.deque(maxlen=OUTPUT_AGES_KEPT)
         """How old each HIL_ACTUATOR_CONTROLS was when it came [s, simulated]: the plant's time then
         (from which it applies) minus PX4's stamp (when PX4 made the output)."""
@@ -194,17 +196,26 @@ class HilPhysics:
                 self.counters["joined"] += 1
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Step the plant until ``stop``: a sensor period at a time, at most as fast as the wall clock."""
+        """Step the plant until ``stop``: a sensor period at a time, at the wall clock's pace. Behind
+        it (this process was starved), it catches up at CATCH_UP times that pace at most; behind by
+        a second, it gives the second up. (The firmwares' clocks are the plant's: run flat out to
+        catch up, it would run PX4's clock several times faster than its companion, which commands
+        at the wall clock's pace, with PX4's real-time threads busy on the burst of sensor messages;
+        a second of PX4's clock without a command ends the flight.) ``behind_max_ms`` counts how
+        far behind it fell."""
         wall0 = time.monotonic() - self.plant.time_s
         while not stop.is_set():
+            started, t0_s = time.monotonic(), self.plant.time_s
             self._send_sensors()
             self._leave_silent()
             self._step()
-            ahead_s = wall0 + self.plant.time_s - time.monotonic()
-            if ahead_s > 0:
-                await asyncio.sleep(ahead_s)
-            elif ahead_s < -1.0:  # (behind by a second: the wall clock is not caught up with)
-                wall0 -= ahead_s
+            due, now = wall0 + self.plant.time_s, time.monotonic()
+            if now - due > 1.0:
+                wall0, due = wall0 + now - due, now
+            self.counters["behind_max_ms"] = max(self.counters["behind_max_ms"], round(1e3 * (now - due)))
+            wait_s = max(due, started + (self.plant.time_s - t0_s) / CATCH_UP) - now
+            if wait_s > 0:
+                await asyncio.sleep(wait_s)
 
     def _leave_silent(self) -> None:
         now = time.monotonic()

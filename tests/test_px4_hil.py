@@ -69,3 +69,34 @@ def test_gps_says_where_the_drone_is():
     assert (north, east) == (pytest.approx(10.0, abs=0.01), pytest.approx(-5.0, abs=0.01))
     assert g.alt == round((HOME[2] + 3.0) * 1000)
     assert g.time_usec == int(1.7e15) and g.fix_type == 3
+
+
+def test_a_plant_behind_the_wall_clock_catches_up_at_most_at_the_catch_up_pace():
+    """The plant's process starved for 0.6 s (a real stall: the loop blocked), the plant, behind by
+    that, catches up no faster than CATCH_UP simulated seconds per wall second over any stretch,
+    never in a burst (which would run a firmware's clock away from its companion's commands), and
+    it says how far behind it fell. A bound on speed only: a slow machine cannot break it."""
+    import asyncio
+    import time
+
+    from triswarm.sitl.px4_hil import CATCH_UP
+
+    hil, _ = physics([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    seen: list[tuple[float, float]] = []  # (wall [s], plant [s])
+
+    async def fly():
+        stop = asyncio.Event()
+        task = asyncio.create_task(hil.run(stop))
+        await asyncio.sleep(0.2)
+        time.sleep(0.6)  # (the stall: nothing of the loop runs)
+        for _ in range(200):  # (2 s at most)
+            seen.append((time.monotonic(), hil.t_s))
+            await asyncio.sleep(0.01)
+        stop.set()
+        await asyncio.wait_for(task, 5.0)
+    asyncio.run(fly())
+    step_s = 1.0 / 250.0
+    for (w0, s0), (w1, s1) in zip(seen, seen[1:]):
+        assert s1 - s0 <= CATCH_UP * (w1 - w0) + step_s, (w1 - w0, s1 - s0)
+    assert seen[-1][1] - seen[0][1] <= CATCH_UP * (seen[-1][0] - seen[0][0]) + step_s
+    assert hil.counters["behind_max_ms"] >= 500
