@@ -128,6 +128,7 @@ class Agent:
         self.idle = (omega * IDLE_FRACTION, alpha)
         self.bus = None
         self.bank = None
+        self._asking: asyncio.Future | None = None
         """The controller of this agent's design (a row each for the process's agents), once a plan is open."""
         self.design = None
         self.listen_to: frozenset[int] = frozenset()
@@ -238,6 +239,8 @@ class Agent:
         self.idle = (omega * IDLE_FRACTION, alpha)
         self.flight.opened(self.bus, self.listen_to, self.plans_on_bus)
         self.publish_status()
+        if self.fc.ready:  # (a plan after the set-up: else the set-up asks)
+            self._asking = asyncio.ensure_future(self._ask_accelerometer())  # (kept: a task only weakly held is lost)
 
     def set_rate(self, rate_hz: float) -> None:
         """Control at ``rate_hz`` (the rate the attitude comes at), before any flight."""
@@ -341,6 +344,19 @@ class Agent:
             self.set_rate(rate_hz)
         if self.bus is not None and self.lockstep:
             self.bus.reliable_estimates()
+        await self._ask_accelerometer()
+
+    async def _ask_accelerometer(self) -> None:
+        """The flight controller's accelerometer stream, once set up, if the plan in force takes it
+        (``Plan.controller_accelerometer``); a plan that does not costs its line nothing."""
+        plan = self.plans.plan
+        if plan is None or not self.fc.ready or not plan.controller_accelerometer(plan.wind):
+            return
+        try:
+            await self.fc.ask_accelerometer(self.rate_hz)
+        except TimeoutError:
+            self.warn("the flight controller did not answer the request for its accelerometer: the observer "
+                      "runs on what comes")
 
     async def _mission(self) -> None:
         await self._setup_fc()

@@ -82,6 +82,8 @@ class FlightController:
         self.max_rpm: float | None = None
         self.servo_deg: float | None = None
         self.output: ActuatorControlTarget | None = None
+        self.accelerometer_asked = False
+        """Whether its accelerometer stream was asked for (``ask_accelerometer``)."""
         self.clock = FcClock()
         self.answers = Answers(self.write)
         self.timesync = TimeSync(self.send, sysid)
@@ -254,6 +256,15 @@ class FlightController:
     async def param(self, name: str) -> float:
         return await self._request(("param", name), lambda: self.send(
             mavlink.MAVLink_param_request_read_message(self.sysid, 1, name.encode(), -1)))
+
+    async def ask_accelerometer(self, rate_hz: float) -> None:
+        """Ask for the accelerometer at ``rate_hz`` (once; set up first), for a plan whose
+        controllers take it (``Autopilot.accelerometer_streams``)."""
+        if self.accelerometer_asked or self.autopilot is None:
+            return
+        self.accelerometer_asked = True
+        for msg_id, us in self.autopilot.accelerometer_streams(rate_hz):
+            await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, us)
 
     async def setup(self, rate_hz: float, heartbeat: Callable[[], object], scaling: tuple[float, float],
                     say: Callable[[str], None]) -> float:

@@ -1,8 +1,8 @@
 """The companion's flight-controller link on a serial line: its URL forms; a link on a real
 pseudo-terminal (frames across reads, both ways, a line that goes away and comes back under the same
-name); and two companions flying the paper's plan on simulated time over serial lines bridged, byte
-for byte, to `triswarm sitl up --lockstep`, with the bytes each line carried per simulated second
-held against a 921600-baud line's capacity."""
+name); and two companions flying the paper's plan (in still air) on simulated time over serial lines
+bridged, byte for byte, to `triswarm sitl up --lockstep`, with the bytes each line carried per
+simulated second held against a 921600-baud line's capacity."""
 
 from __future__ import annotations
 
@@ -181,10 +181,16 @@ def per_second(msgs: list, t0_us: int, t1_us: int) -> tuple[float, Counter, dict
 
 @pytest.mark.slow
 def test_two_drones_fly_the_paper_plan_over_serial_lines(tmp_path, paper_spec):
+    """In still air (the plan's [wind] and the plant's): the companions' controllers take the
+    accelerometer, so the line carries everything a companion asks for."""
+    spec = small_plan(paper_spec, 2, "pair")
+    spec["wind"] = {"speed_m_s": 0.0}
     plan_file = tmp_path / "pair.toml"
-    plan_file.write_text(tomli_w.dumps(small_plan(paper_spec, 2, "pair")))
+    plan_file.write_text(tomli_w.dumps(spec))
     plan = load_plan(str(plan_file))
-    with Stack(plan_file, tmp_path / "run", 2, start_delay_s=4.0, lockstep=True, companions=False) as stack:
+    assert plan.controller_accelerometer(plan.wind)
+    with Stack(plan_file, tmp_path / "run", 2, start_delay_s=4.0, lockstep=True, companions=False,
+               sitl_args=["--wind-m-s", "0"]) as stack:
         ends = {v["sysid"]: (v["links"]["companion"]["host"], v["links"]["companion"]["port"])
                 for v in stack.manifest["vehicles"]}
         with PtyBridge(ends) as bridge, Recorder(stack.manifest) as rec:
@@ -222,7 +228,7 @@ def test_two_drones_fly_the_paper_plan_over_serial_lines(tmp_path, paper_spec):
             assert n_down[name] == pytest.approx(200.0, abs=0.2) and size_down[name] == {FRAME_BYTES[name]}, name
         assert n_up["SET_ACTUATOR_CONTROL_TARGET"] == pytest.approx(200.0, abs=0.2)
         assert size_up["SET_ACTUATOR_CONTROL_TARGET"] == {FRAME_BYTES["SET_ACTUATOR_CONTROL_TARGET"]}
-        assert n_down["HIGHRES_IMU"] == pytest.approx(200.0, abs=0.2)  # (its accelerometer: the observer's)
+        assert n_down["HIGHRES_IMU"] == pytest.approx(200.0, abs=0.2)  # (its accelerometer: the plan in air takes it)
         assert not {"ATTITUDE_QUATERNION", "ODOMETRY"} & set(n_down), n_down  # (turned off: unused)
         assert 200 * (FRAME_BYTES["ATTITUDE"] + FRAME_BYTES["LOCAL_POSITION_NED"]) <= rate_down <= BUDGET_FRACTION * LINE_BYTES_S
         assert 200 * FRAME_BYTES["SET_ACTUATOR_CONTROL_TARGET"] <= rate_up <= BUDGET_FRACTION * LINE_BYTES_S

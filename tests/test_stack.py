@@ -224,5 +224,8 @@ def test_paper_case_study_on_an_autopilots_companion_link(tmp_path, fc_profile, 
         assert s["loop"]["ticks"] >= 200 * 51  # a command at every attitude (200 Hz, as asked), from arming on
     # what the companions flew on is what the autopilot sends: PX4 has a new position every 10 ms
     # only (its filter's rate), ArduPilot every 5 ms as asked; neither sends ODOMETRY once asked not to
+    # in no air the paper's law takes no accelerometer, and its stream is not asked for (PX4's Onboard
+    # mode streams it at 50 Hz of its own; asked for, it would come at the control rate, as ATTITUDE)
+    assert sent.get("HIGHRES_IMU", 0) <= 0.3 * sent["ATTITUDE"], sent
     ratio = sent["LOCAL_POSITION_NED"] / sent["ATTITUDE"]
     assert (ratio < 0.6) if fc_profile == "px4" else (ratio > 0.95), sent  # (the ground station's 25 Hz of each included)

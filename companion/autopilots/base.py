@@ -118,14 +118,17 @@ class Autopilot(ABC):
                 "home: positions are moved by that")
 
     def streams(self, rate_hz: float) -> list[tuple[int, float]]:
-        """(message id, interval [us]; -1: off) to ask for: the attitude, position and IMU (the
-        accelerometer, for the observer) at the control rate, the clock, the landed state; the
-        alternatives off."""
+        """(message id, interval [us]; -1: off) to ask for: the attitude and position at the control
+        rate, the clock, the landed state; the alternatives off."""
         interval = 1e6 / rate_hz
         return [(mavlink.MAVLINK_MSG_ID_ATTITUDE, interval), (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval),
                 (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, -1), (mavlink.MAVLINK_MSG_ID_ODOMETRY, -1),
-                (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, interval), (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6),
-                (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)]
+                (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 1e6), (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)]
+
+    def accelerometer_streams(self, rate_hz: float) -> list[tuple[int, float]]:
+        """What to ask for besides when the plan's controllers take the accelerometer: HIGHRES_IMU at
+        the control rate (74 bytes a frame: on a slow serial line it is asked only when used)."""
+        return [(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 1e6 / rate_hz)]
 
     def output(self, codec, sysid: int, max_rotor_speed_rad_s: float, servo_limit_rad: float) -> ActuatorControlTarget:
         """The output path: SET_ACTUATOR_CONTROL_TARGET, unless the kind has another."""

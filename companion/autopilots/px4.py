@@ -69,6 +69,9 @@ class Px4(Autopilot):
     def streams(self, rate_hz: float) -> list[tuple[int, float]]:
         return []  # (the bridge publishes at PX4's own rates: vehicle_odometry at its estimator's)
 
+    def accelerometer_streams(self, rate_hz: float) -> list[tuple[int, float]]:
+        return []  # (the bridge publishes no IMU topic: the observer runs without the accelerometer)
+
     @property
     def control_mode(self) -> int:
         return px4.custom_mode(px4.NAV_STATE_OFFBOARD)
