@@ -9,6 +9,8 @@ the offboard loss on PX4's modes as its ground-station link says them (HEARTBEAT
 from __future__ import annotations
 
 import math
+import os
+import signal
 import time
 
 import pytest
@@ -37,6 +39,10 @@ commands from 40 ms after its switch to offboard, while its own topics still cam
 that flight; with 20 s no run has. (The likely cause, found later: the phase change that goes with
 the switch saved the companion's state in the control loop, and its fsync took up to 2.3 s on a
 busy machine; the state is now written in a thread of its own. The 20 s are kept.)"""
+STALL_AT_S, STALL_S = 12.0, 0.8
+"""In the climb, the SITL's process (the plant, PX4's clock, and the Zenoh router) is stopped this long
+[s, wall]: a starved machine. (A plant that caught up flat out ran PX4's clock 0.8 s ahead of its
+companion's commands in milliseconds, and PX4 ended all three flights.)"""
 OFFBOARD_LOSS_S = 1.0
 """COM_OF_LOSS_T of the shipped airframe (deploy/px4/)."""
 HEARTBEAT_S = 1.0
@@ -59,7 +65,8 @@ def modes(rec: Recorder, sysid: int, since_unix: float = -math.inf) -> list[tupl
 def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(tmp_path):
     """Three PX4 firmwares, one companion process flying all three with --autostart: each drone
     rests on the ground, the companion switches PX4 to offboard and takes it off with its own
-    commands, and the three fly a turning triangle from the plan's start. Judged on PX4's own
+    commands, and the three fly a turning triangle from the plan's start; in the climb the SITL's
+    process is stopped for STALL_S and goes on, and no PX4 ends its flight. Judged on PX4's own
     telemetry with the issue's bounds, and on the plant's truth. The firmware subscribes to what
     the companion publishes with the very type hashes the companion computed from the fields.
     Then the ground station asks the companions to land: each descends (LAND_SPEED, 0.5 m/s) and
@@ -72,6 +79,10 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
         announced = subscriptions(stack.manifest["zenoh_router"])
         start = stack.start_at
         end = start + plan.duration_s
+        poll(lambda: rec.now() >= start + STALL_AT_S, START_DELAY_S + STALL_AT_S + 60.0, "the climb", every_s=0.05)
+        os.kill(stack.procs["sitl"].pid, signal.SIGSTOP)  # (the plant and the router, as a starved machine stalls them)
+        time.sleep(STALL_S)
+        os.kill(stack.procs["sitl"].pid, signal.SIGCONT)
         poll(lambda: rec.now() >= end, START_DELAY_S + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
         t_from = plan.settled_from_s
         ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
@@ -98,6 +109,7 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
         for topic, name in px4.TOPICS_IN.items():
             assert announced.get(px4.topic_path(ns, "in", topic)) == px4.type_hash(name), (ns, topic, announced)
         assert ("OFFBOARD", True) in [(m, a) for _, m, a in history[i]], history[i]
+        assert "TERMINATION" not in {m for _, m, _ in history[i]}, history[i]
     assert ok, f"telemetry over [{t_from}, {plan.duration_s}] s: {report}"
     assert truth_ok, f"truth over [{t_from}, {plan.duration_s}] s: {truth_report}"
     assert all(ok for ok, _ in landing.values()), landing
