@@ -128,8 +128,8 @@ class Agent:
         self.idle = (omega * IDLE_FRACTION, alpha)
         self.bus = None
         self.bank = None
-        self._asking: asyncio.Future | None = None
         """The controller of this agent's design (a row each for the process's agents), once a plan is open."""
+        self._asking: asyncio.Future | None = None
         self.design = None
         self.listen_to: frozenset[int] = frozenset()
         self.in_neighbours: dict[str, list[int]] = {}

@@ -103,6 +103,7 @@ class FlightController:
         self.heard = False
         self.autopilot = None
         self.output = self.last_sample = None
+        self.accelerometer_asked = False
         self.clock.forget()
         self.answers = Answers(self.write)
         self.backlog.clear()
