@@ -83,8 +83,10 @@ def test_three_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(t
         end = start + plan.duration_s
         poll(lambda: rec.now() >= start + STALL_AT_S, START_DELAY_S + STALL_AT_S + 60.0, "the climb", every_s=0.05)
         os.kill(stack.procs["sitl"].pid, signal.SIGSTOP)  # (the plant and the router, as a starved machine stalls them)
-        time.sleep(STALL_S)
-        os.kill(stack.procs["sitl"].pid, signal.SIGCONT)
+        try:
+            time.sleep(STALL_S)
+        finally:
+            os.kill(stack.procs["sitl"].pid, signal.SIGCONT)
         poll(lambda: rec.now() >= end, START_DELAY_S + plan.duration_s + 60.0, "the end of the plan", every_s=0.5)
         t_from = plan.settled_from_s
         ok, report = judge(plan, rec, start, t_from, plan.duration_s, position_bound_m=0.25, attitude_bound_rad=0.05)
