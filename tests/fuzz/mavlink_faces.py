@@ -108,7 +108,8 @@ def _finish(report: Report, cuf: CompanionUnderFuzz, link: str, model: LinkModel
     report.compare()
     report.problems += [f"crash: {c}" for c in crashes(cuf.log_tail(10**7))]
     if stats["phase"] == "lost":  # (a stamp out of place is dropped, not taken for a reboot: agent.clock_broke)
-        report.problems.append("the companion counts its flight controller lost after the fuzz")
+        said = [line for line in cuf.log_tail(10**6).splitlines() if "flight controller lost" in line]
+        report.problems.append(f"the companion counts its flight controller lost after the fuzz: {said[-3:]}")
     return report
 
 
