@@ -138,17 +138,21 @@ class Design:
         """(A, B, C, F) of the observer with the outputs ``measured`` (``RATES`` | ``ACCEL``) as well:
         y = (eta, lambda[, eta_dot][, R(eta) f - g e_z - B_r v]). With the acceleration, the model
         is ``observer_model``'s with the accelerometer's bias as three more states (``accel_model``)."""
+        taken = self._taken(measured)
         A, B, C, _ = self.observer_model()
-        if self.outputs_measured(measured)[-1] == 11:
+        if taken & ACCEL:
             A, B, C = accel_model(A, B, C)
         else:
             C = full_output(A, C)
-        return A, B, C[self.outputs_measured(measured)], self.F_measured[measured]
+        return A, B, C[measured_outputs(taken)], self.F_measured[measured]
 
     def outputs_measured(self, measured: int) -> list[int]:
         """The rows of ``full_output`` the observer takes on a tick that measures ``measured``
         (``RATES`` | ``ACCEL``): without a disturbance estimate the acceleration is not taken."""
-        return measured_outputs(measured if self.estimates_disturbance else measured & RATES)
+        return measured_outputs(self._taken(measured))
+
+    def _taken(self, measured: int) -> int:
+        return measured if self.estimates_disturbance else measured & RATES
 
     def observer_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C, F) of the observer the controller runs: the paper's (73), or (73) augmented
