@@ -7,10 +7,7 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import socket
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -26,6 +23,7 @@ from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import PlanItem, decode_plan, encode_plan, field_value
 
 
+from .mavproxy_run import mavproxy_until_saved
 from .stack_helpers import flying, small_plan, wait_sim
 from .poll import poll
 
@@ -186,16 +184,10 @@ def test_plans_and_leader_over_mavlink(tmp_path, paper_spec):
             assert flying(link, 1) and flying(link, 2)
 
         # MAVProxy, a third-party client, downloads the plan drone 1 holds from component 191
-        mavproxy = Path(sys.executable).with_name("mavproxy.py")
         saved = tmp_path / "plan.txt"
-        home = tmp_path / "home"
-        home.mkdir()
-        cmd = [sys.executable, str(mavproxy), f"--master={stack.endpoints()[1]}", "--target-system=1",
-               "--target-component=191", "--source-system=254", "--non-interactive", f"--state-basedir={tmp_path / 'mp'}",
-               f"--cmd=set requireexit True; wp list; repeat add 4 wp save {saved}; repeat add 6 exit"]
-        result = subprocess.run(cmd, cwd=tmp_path, env=dict(os.environ, HOME=str(home)), capture_output=True, text=True,
-                                timeout=60)
-        assert saved.exists(), result.stdout[-3000:] + result.stderr[-2000:]
+        args = [f"--master={stack.endpoints()[1]}", "--target-system=1", "--target-component=191", "--source-system=254"]
+        count, path = mavproxy_until_saved(args, f"wp save {saved}", tmp_path)
+        assert path == saved and count == len(items)
         rows = [line.split("\t") for line in saved.read_text().splitlines()[1:] if line.strip()]
         items = [PlanItem(int(r[3]), tuple(field_value(round(float(v), 6), "wpl") for v in r[4:11])) for r in rows]
         spec_back, pid_back = decode_plan(items)

@@ -6,17 +6,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 from pymavlink import mavutil
 
 from triswarm.protocol.frames import LocalProjection
 
+from .mavproxy_run import mavproxy_until_saved
 from .poll import poll
 from .sitl_helpers import command, connect, read_param, sitl_process
 
@@ -122,24 +119,15 @@ def test_mavsdk_sees_every_vehicle_in_the_manifest(tmp_path):
 
 
 def test_mavproxy_fetches_the_parameter_list(tmp_path):
-    mavproxy = Path(sys.executable).with_name("mavproxy.py")
-    assert mavproxy.exists(), "MAVProxy is installed by `make test` (Makefile)"
     with sitl_process(tmp_path, 1) as (manifest, _):
-        home = tmp_path / "home"
-        home.mkdir()
-        saved = tmp_path / "params.parm"
-        cmd = [sys.executable, str(mavproxy), f"--master={manifest['vehicles'][0]['links']['gcs']['pymavlink']}",
-               "--non-interactive", f"--state-basedir={tmp_path / 'state'}",
-               f"--cmd=set requireexit True; param fetch; repeat add 4 param save {saved}; repeat add 5 exit"]
-        env = dict(os.environ, HOME=str(home))
-        result = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
-        # MAVProxy exits with 1 even when it exits cleanly; judge by what it saved
-        assert saved.exists(), result.stdout[-2000:] + result.stderr[-2000:]
+        # MAVProxy fetches the parameters on its own, and saves them once it has them all
+        saved_count, saved = mavproxy_until_saved([f"--master={manifest['vehicles'][0]['links']['gcs']['pymavlink']}"],
+                                            "param fetch", tmp_path)
         params = dict(line.split() for line in saved.read_text().splitlines() if line.strip())
         conn = connect(manifest["vehicles"][0]["links"]["companion"]["pymavlink"])
         conn.mav.param_request_read_send(1, 1, b"", 0)
         count = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=3).param_count
-        assert len(params) == count
+        assert len(params) == saved_count == count
         # MAVProxy saves six decimals
         assert float(params["MASS_KG"]) == pytest.approx(0.5) and float(params["MOT_MAX_RPM"]) == pytest.approx(12000)
         assert float(params["SERVO_DELAY_S"]) == pytest.approx(0.01) and float(params["KF"]) == pytest.approx(2e-5, abs=1e-6)
