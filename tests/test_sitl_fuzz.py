@@ -102,9 +102,12 @@ def test_vehicle_survives_a_flood_of_bad_frames(tmp_path):
         monitor.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
         ack = command(monitor, 1, M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         assert ack.result == M.MAV_RESULT_ACCEPTED
-        status = monitor.recv_match(type="SYS_STATUS", blocking=True, timeout=3)
+        # (1 Hz streams; the bound is generous for a loaded machine, a verdict only on what they say)
+        status = monitor.recv_match(type="SYS_STATUS", blocking=True, timeout=15)
+        assert status is not None, "no SYS_STATUS within 15 s after the flood"
         assert status.errors_comm > 0 and status.drop_rate_comm > 0
-        hb = monitor.recv_match(type="HEARTBEAT", blocking=True, timeout=3)
+        hb = monitor.recv_match(type="HEARTBEAT", blocking=True, timeout=15)
+        assert hb is not None, "no HEARTBEAT within 15 s after the flood"
         assert not hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED  # the foreign arm commands were not ours
     assert proc.returncode == 0
     stats = json.loads((tmp_path / "stats.json").read_text())
