@@ -121,8 +121,8 @@ def test_mavsdk_sees_every_vehicle_in_the_manifest(tmp_path):
 def test_mavproxy_fetches_the_parameter_list(tmp_path):
     with sitl_process(tmp_path, 1) as (manifest, _):
         # MAVProxy fetches the parameters on its own, and saves them once it has them all
-        saved_count, saved = mavproxy_until_saved([f"--master={manifest['vehicles'][0]['links']['gcs']['pymavlink']}"],
-                                            "param fetch", tmp_path)
+        master = f"--master={manifest['vehicles'][0]['links']['gcs']['pymavlink']}"
+        saved_count, saved = mavproxy_until_saved([master], "param fetch", tmp_path)
         params = dict(line.split() for line in saved.read_text().splitlines() if line.strip())
         conn = connect(manifest["vehicles"][0]["links"]["companion"]["pymavlink"])
         conn.mav.param_request_read_send(1, 1, b"", 0)
