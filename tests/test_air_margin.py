@@ -6,8 +6,6 @@ naming the drone, the instant, the limit and the air."""
 import copy
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -22,6 +20,7 @@ from triswarm.protocol.rfl import RFL
 from triswarm.protocol.wind import Gust, Wind
 
 from .conftest import paper_plan_variant
+from .test_plan_check import plan_check
 
 AF = Airframe(k_d_N_m_s2=0.0)  # no rotor drag torque: the closed forms below are then exact
 WEIGHT_N = AF.mass_kg * AF.gravity_m_s2
@@ -116,9 +115,6 @@ def test_margins_shrink_as_the_wind_grows(still_spec):
     assert calm.tilt_margin_rad(plan.airframe).min() == pytest.approx(tilt[0], abs=1e-9)
 
 
-def plan_check(*args):
-    return subprocess.run([sys.executable, "-m", "triswarm.gcs.cli", "plan", "check", *map(str, args)],
-                          capture_output=True, text=True, timeout=60)
 
 
 STILL = [("rate_rad_s = 1.0", "rate_rad_s = 0.0")]
