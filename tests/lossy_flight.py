@@ -61,6 +61,7 @@ def main() -> None:
     ap.add_argument("--from-s", type=float, default=20.0, help="judged from this plan time")
     ap.add_argument("--until-s", type=float, default=40.0, help="flown and judged until this plan time")
     ap.add_argument("--nice", type=int, default=0, help="run the stack at this niceness (see prioritise)")
+    ap.add_argument("--speedup", type=float, default=1.0, help="the SITL's simulated seconds per wall second (sitl up --speedup)")
     a = ap.parse_args()
     scheduling = prioritise(a.nice)
     plan = load_plan(str(PAPER_PLAN_FILE))
@@ -68,7 +69,7 @@ def main() -> None:
     t0 = time.monotonic()
     times = {}
     with DelayRelay(routes, a.delay_ms / 1000.0) as relay:
-        with Stack(PAPER_PLAN_FILE, a.workdir, N, start_delay_s=3600.0, rate_hz=a.rate_hz,
+        with Stack(PAPER_PLAN_FILE, a.workdir, N, start_delay_s=3600.0, rate_hz=a.rate_hz, sitl_args=["--speedup", str(a.speedup)],
                    companion_args={i: zenoh_args(i) for i in range(1, N + 1)}) as stack, \
                 Recorder(stack.manifest) as rec, GroundLink(stack.endpoints(), tlog=a.workdir / "gcs.tlog") as link:
             deadline = time.monotonic() + READY_WITHIN_S
