@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import inspect
-import logging
 import signal
 import sys
 from pathlib import Path
@@ -100,8 +99,8 @@ def companion(ctx, **given_params) -> None:
                 raise ConfigError(problem)
         from .host import CountingLoop, agent_options, run_agents
 
-        logging.basicConfig(level=logging.DEBUG if values["verbose"] else logging.INFO, stream=sys.stderr,
-                            format="%(asctime)s %(message)s")
+        from .logs import start_logging
+
         opts = CompanionOptions(**{o.name: values[o.name] for o in OPTIONS})
         every = agent_options(opts, [(opts.id, opts.fc, opts.gcs), *agents])
 
@@ -112,8 +111,12 @@ def companion(ctx, **given_params) -> None:
                 loop.add_signal_handler(sig, stop.set)
             return await run_agents(every, stop)
 
-        with asyncio.Runner(loop_factory=CountingLoop) as runner:
-            results = runner.run(main())
+        log_writer = start_logging(sys.stderr, values["verbose"])
+        try:
+            with asyncio.Runner(loop_factory=CountingLoop) as runner:
+                results = runner.run(main())
+        finally:
+            log_writer.stop()
     except USER_ERRORS as exc:  # what the operator wrote or gave (anything else is a bug: its traceback)
         print(f"triswarm-companion: error: {exc}", file=sys.stderr)
         raise typer.Exit(code=2) from None

@@ -32,7 +32,7 @@ PHYSICS_HZ = 1000
 
 
 def fly(rate_hz: float, latency_ms: int, age_ms: float, loss: float, until_s: float = 40.0, judged_from_s: float = 20.0,
-        seed: int = 1) -> tuple[float, float] | None:
+        seed: int = 1, adaptation_rate_1_s: float | None = None) -> tuple[float, float] | None:
     """Worst (position m, attitude rad) over [judged_from_s, until_s], None if it diverged."""
     spec = dict(load_plan("paper-hexagon").spec)
     spec["controller"] = dict(spec["controller"], rate_hz=rate_hz)
@@ -41,7 +41,8 @@ def fly(rate_hz: float, latency_ms: int, age_ms: float, loss: float, until_s: fl
     dt, sub = 1.0 / rate_hz, int(round(PHYSICS_HZ / rate_hz))
     start = default_start_positions(n, 0)
     plant = Plant(plan.airframe, n, dt_s=1.0 / PHYSICS_HZ)
-    ctrl = FormationController(design, n, rate_hz, thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s)
+    rate = plan.controller.thrust_adaptation_rate_1_s if adaptation_rate_1_s is None else adaptation_rate_1_s
+    ctrl = FormationController(design, n, rate_hz, thrust_adaptation_rate_1_s=rate)
     plant.reset(start)
     ctrl.reset(plant.observe().paper_state())
     plant.reset(start, servo_rad=ctrl.initial_actuation.alpha_rad)
@@ -89,9 +90,11 @@ def main() -> None:
     ap.add_argument("--latency-ms", default="0,5,10,15,20", help="comma-separated")
     ap.add_argument("--age-ms", type=float, default=30.0)
     ap.add_argument("--loss", type=float, default=0.2)
+    ap.add_argument("--adaptation-rate", type=float, default=None,
+                    help="the thrust adaptation's rate [1/s] (default: the plan's; 0: off)")
     a = ap.parse_args()
     for latency in (int(x) for x in a.latency_ms.split(",")):
-        worst = fly(a.rate_hz, latency, a.age_ms, a.loss)
+        worst = fly(a.rate_hz, latency, a.age_ms, a.loss, adaptation_rate_1_s=a.adaptation_rate)
         text = "diverged" if worst is None else f"{worst[0]:.4f} m, {worst[1]:.4f} rad"
         print(f"{a.rate_hz:g} Hz, commands {latency} ms late, estimates {a.age_ms:g} ms old, {a.loss:.0%} lost: {text}",
               flush=True)
