@@ -65,10 +65,12 @@ def protocol_rows(d: Design, xi: np.ndarray, neighbour_sum: np.ndarray, in_degre
     """(72) with every argument given per row: xi, neighbour_sum, x0 (N, 12), in_degree and pinning
     (N,), gamma (N, 6). Compiled row by row: an agent's v is the same bits whether it is computed
     alone or with others."""
-    c = np.ascontiguousarray
+    def c(a):  # (contiguous and writable, as every caller's: a read-only view, a broadcast one, would be
+        # another type to the compiled kernel, compiled anew the first time a hold or a landing came)
+        return np.require(a, dtype=float, requirements=("C", "W"))
+
     out = np.empty((xi.shape[0], d.K.shape[0]))
-    kernels.protocol_rows(d.cK, c(xi, dtype=float), c(neighbour_sum, dtype=float), c(in_degree, dtype=float),
-                          c(pinning, dtype=float), c(x0, dtype=float), c(gamma, dtype=float), out)
+    kernels.protocol_rows(d.cK, c(xi), c(neighbour_sum), c(in_degree), c(pinning), c(x0), c(gamma), out)
     return out
 
 

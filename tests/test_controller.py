@@ -290,3 +290,22 @@ def test_measured_rates_on_a_trajectory_of_the_model_keep_the_estimate_exact(pap
         xr = scipy.linalg.expm(d.A_r * k * wrong.dt_s) @ xr0
         wrong.observe(xr[None, 6:12], None, xr[None, 3:6])
     assert np.abs(wrong.estimate[0, 3:6] - xr[3:6]).max() > 1e-3
+
+
+def test_a_hold_and_a_formation_share_one_compiled_protocol():
+    """The protocol a hold or a landing runs (``pinned_input``: broadcast, read-only views of its
+    arguments) is the specialization the formation's rows run: no compilation waits for the first
+    hold or landing of a flight. (It did: numba took the read-only views for another type, and the
+    first landing of a fresh install stopped the companion's commands for a second, long enough for
+    PX4 to end the flight.)"""
+    from triswarm.gcs.scenarios import load_plan
+    from triswarm.protocol import kernels
+    from triswarm.protocol.agent import pinned_input, protocol_rows
+
+    d = load_plan("paper-hexagon").design
+    rows = protocol_rows(d, np.ones((2, 12)), np.zeros((2, 12)), np.zeros(2), np.ones(2), np.zeros((2, 12)),
+                         np.zeros((2, 6)))
+    compiled = set(kernels.protocol_rows.signatures)
+    held = pinned_input(d, np.ones((1, 12)), np.zeros(12), np.zeros((1, 6)))
+    assert set(kernels.protocol_rows.signatures) == compiled
+    assert np.array_equal(held[0], rows[0])  # (pinned alone to a leader at the origin: the same v)
