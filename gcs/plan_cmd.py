@@ -147,7 +147,8 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
                        "thrust_adaptation_rate_1_s": plan.controller.thrust_adaptation_rate_1_s,
                        "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind),
                        "wind_estimate_rate_1_s": plan.controller.wind_estimate_rate_1_s,
-                       "accelerometer": plan.controller_accelerometer(plan.wind)},
+                       "accelerometer": plan.controller_accelerometer(plan.wind),
+                       "latency_s": plan.controller.latency_s},
         "flight": flight.summary() if flight is not None else {"flown": False},
         "ok": flight is not None,
     }
@@ -182,6 +183,12 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
     facts.add_row("lambda_R", f"{design.lambda_R:.6g} (min Re of eig(L+G) over the topologies)")
     facts.add_row("c", f"{design.c:.6g} = {design.weights.coupling_margin:g} / (2 lambda_R), (91)")
     facts.add_row("drag term", _drag_term(plan))
+    from triswarm.protocol.controller import lead_ticks
+
+    dt_s = 1.0 / plan.controller.rate_hz
+    lead_ms = lead_ticks(plan.airframe.servo_delay_s, plan.controller.latency_s, dt_s)[1] * dt_s * 1000
+    facts.add_row("prediction", escape(f"{lead_ms:.4g} ms ahead: the servo delay and [controller] latency_s "
+                                       f"({plan.controller.latency_s * 1000:g} ms), in whole control periods"))
     for key, value in design.stability_margins().items():
         facts.add_row(key.replace("_", " "), f"{value:.4g} (< 0: Hurwitz, (77))")
     console.print(Panel(facts, title=f"plan {escape(plan.source)}", expand=False))

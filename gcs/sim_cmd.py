@@ -43,6 +43,10 @@ def sim(
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
     max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
+    latency_s: Annotated[Optional[float], typer.Option(
+        "--latency-s", help="Simulated latency [s]: how long after a measurement's stamp the command that answers "
+                            "it reaches the plant (default: the plan's [controller] latency_s, which the "
+                            "controllers compensate).")] = None,
     noise: Annotated[bool, typer.Option(help="Sensor noise: position 0.02 m, attitude 0.005 rad (1 sigma).")] = False,
     estimator: Annotated[Optional[str], typer.Option(
         metavar="PROFILE", help="What the controllers measure, as an autopilot's estimator with this positioning "
@@ -72,6 +76,9 @@ def sim(
         finite_option("duration-s", duration_s, positive=True)
         finite_option("servo-delay-s", servo_delay_s, non_negative=True)
         finite_option("max-rpm", max_rpm, positive=True)
+        finite_option("latency-s", latency_s, non_negative=True)
+        if latency_s is not None and latency_s > 1.0:
+            raise UserError(f"--latency-s must be at most 1 s, got {latency_s:g}")
         if not (math.isfinite(mismatch) and -50 < mismatch < 100):
             raise UserError(f"--mismatch must be a percentage above -50 and below 100, got {mismatch}")
         finite_option("physics-hz", physics_hz, positive=True)
@@ -97,13 +104,13 @@ def sim(
         duration = plan.duration_s if duration_s is None else duration_s
         # (the flight's modules once the flags are known good: a mistake is said in half the time)
         from triswarm.protocol import metrics
-        from triswarm.sitl.simulation import SensorNoise, SimConfig, simulate
+        from triswarm.sitl.simulation import SensorNoise, SimConfig, command_latency_s, simulate
 
         from . import plots, report
 
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
                            max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
-                           wind=wind, estimator=est)
+                           wind=wind, estimator=est, latency_s=latency_s)
         design = plan.check_formation(horizon_s=duration)
         problems = plan.safety_problems(horizon_s=duration)
         if problems and not force:
@@ -130,7 +137,8 @@ def sim(
     run = {
         "duration_s": duration, "physics_hz": physics_hz, "control_hz": plan.controller.rate_hz, "log_hz": log_hz,
         "servo_delay_s": result.plant_airframe.servo_delay_s, "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),
-        "controller_servo_delay_s": plan.airframe.servo_delay_s,
+        "controller_servo_delay_s": plan.airframe.servo_delay_s, "latency_s": command_latency_s(plan, config),
+        "controller_latency_s": plan.controller.latency_s,
         "noise": None if config.noise is None else {"position_m": config.noise.position_m, "attitude_rad": config.noise.attitude_rad},
         "mismatch_pct": mismatch, "seed": seed, "wind": None if wind is None else wind.describe(), "wall_time_s": result.wall_s, "diverged_at_s": result.diverged_at_s,
         "start_position_m": result.start_position_m.tolist(),

@@ -13,6 +13,10 @@ What this adds to the paper's law, and why (see docs/control-design.md):
   delay of the whole u; an exact predictor (the discrete model over the inputs already committed)
   then gives the state at t + d, and the protocol and the RFL act on that prediction. For the
   nominal plant the loop is the delay-free loop shifted by d (a Smith predictor).
+* Latency. Where the command that answers a measurement reaches the flight controller
+  ``latency_s`` after the instant the measurement is stamped with (the link, the companion's work,
+  the flight controller's own step), the whole input acts that much later again: the predictor runs
+  over d + latency, the motors are still held back by d alone.
 * Observer. (73) is discretised with a zero-order hold on v and a first-order hold on y, updated
   when y arrives, so the estimate used at tick k has seen y_k. With ``Design.F_aug`` it also
   estimates an acceleration disturbance on x_r rows 1-6, which the command cancels.
@@ -94,6 +98,12 @@ class Actuation:
     alpha_rad: np.ndarray
 
 
+def lead_ticks(servo_delay_s: float, latency_s: float, dt_s: float) -> tuple[int, int]:
+    """The servo delay and the lead (the servo delay and the latency) in whole control periods."""
+    servo = int(round(servo_delay_s / dt_s))
+    return servo, max(int(round((servo_delay_s + latency_s) / dt_s)), servo)
+
+
 class FormationController:
     """Observer, delay predictor, thrust adaptation, RFL and actuator inverse for N agents."""
 
@@ -122,16 +132,18 @@ class FormationController:
         return cls(plan.design, n_agents, rate_hz, delay_s, measured_accel=plan.controller_accelerometer(wind),
                    thrust_adaptation_rate_1_s=plan.controller.thrust_adaptation_rate_1_s,
                    air_density_kg_m3=plan.controller_air_density_kg_m3(wind), measured_rates=measured_rates,
-                   wind_estimate_rate_1_s=plan.controller.wind_estimate_rate_1_s)
+                   wind_estimate_rate_1_s=plan.controller.wind_estimate_rate_1_s, latency_s=plan.controller.latency_s)
 
     def __init__(self, design: Design, n_agents: int, rate_hz: float = 200.0, delay_s: float | None = None,
                  thrust_adaptation_rate_1_s: float = 3.0, thrust_scale_limits: tuple[float, float] = (0.3, 3.0),
                  air_density_kg_m3: float = 0.0, measured_rates: bool = False,
-                 wind_estimate_rate_1_s: float = 0.0, measured_accel: bool = False) -> None:
-        """air_density_kg_m3: the air the drones fly in, as the controller assumes it [kg/m^3], for
-        the drag the RFL cancels; 0 is no air (the paper's law, to the bit). wind_estimate_rate_1_s:
-        the rate [1/s] at which the wind estimate takes up the translational disturbance that its
-        drag explains (``kernels.update_wind_estimate``; 0: still air assumed, no wind estimate)."""
+                 wind_estimate_rate_1_s: float = 0.0, measured_accel: bool = False, latency_s: float = 0.0) -> None:
+        """latency_s: the time [s] from the instant a measurement is stamped with to the flight
+        controller taking the command that answers it (the link, the companion's own work), which
+        the predictor runs ahead by on top of the servo delay (0: none). air_density_kg_m3: the air
+        the drones fly in, as the controller assumes it [kg/m^3], for the drag the RFL cancels; 0 is
+        no air (the paper's law, to the bit). wind_estimate_rate_1_s: the rate [1/s] at which the
+        wind estimate takes up the translational disturbance that its drag explains (``kernels.update_wind_estimate``; 0: still air assumed, no wind estimate)."""
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"controller rate must be a positive number of hertz, got {rate_hz!r}")
         self.design = design
@@ -141,9 +153,12 @@ class FormationController:
         delay = self.rfl.airframe.servo_delay_s if delay_s is None else float(delay_s)
         if not (np.isfinite(delay) and delay >= 0):
             raise ValueError(f"compensated servo delay must be a non-negative number of seconds, got {delay!r}")
-        self.lead_ticks = int(round(delay / self.dt_s))
+        if not (np.isfinite(latency_s) and latency_s >= 0):
+            raise ValueError(f"compensated latency must be a non-negative number of seconds, got {latency_s!r}")
+        self.servo_ticks, self.lead_ticks = lead_ticks(delay, latency_s, self.dt_s)
+        """The servo delay in whole ticks (the motor commands are held back by it), and the lead."""
         self.lead_s = self.lead_ticks * self.dt_s
-        """Estimates and protocol inputs refer to t + lead_s (the delay, in whole ticks)."""
+        """Estimates and protocol inputs refer to t + lead_s: the servo delay and the latency, in whole ticks."""
         if not (np.isfinite(air_density_kg_m3) and air_density_kg_m3 >= 0):
             raise ValueError(f"air density must be a non-negative number of kg/m^3, got {air_density_kg_m3!r}")
         self.air_density_kg_m3 = float(air_density_kg_m3)
@@ -217,7 +232,7 @@ class FormationController:
             self._y_prev = np.full((self.n, 12), np.nan)
             self._fresh = np.ones(self.n, dtype=np.bool_)
             self._v_pipe = np.zeros((self.lead_ticks, self.n, 6))
-            self._motor_pipe = np.zeros((self.lead_ticks, self.n, 3))
+            self._motor_pipe = np.zeros((self.servo_ticks, self.n, 3))
             self._v_applied = np.zeros((self.n, 6))
             self._z_pred = np.zeros((self.n, self.n_z))
             self.initial_actuation = Actuation(np.zeros((self.n, 3)), np.zeros((self.n, 3)))

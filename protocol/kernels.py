@@ -237,25 +237,31 @@ def observe(rows, z, v_applied, y_prev, y, fresh, Phi, Gv, Gy0, Gy1, Phi1, G1, p
 @njit()
 def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
     """Commit each row's v (and its rotor speeds, unless ``keep_motor``: the actuators kept the
-    last ones) to the pipes of depth D = v_pipe.shape[0], the servo delay in ticks: the v leaving
-    the pipe is the one the plant now applies (``v_applied``), the rotor speeds leaving it are the
-    ones to send now (``omega_now``; with no delay, ``omega`` itself)."""
-    D = v_pipe.shape[0]
+    last ones) to the pipes. The v pipe's depth D = v_pipe.shape[0] is the lead in ticks: the servo
+    delay and the latency compensated, the time from a measurement to the servos acting on its
+    command; the v leaving it is the one the plant applies at the instant measured now
+    (``v_applied``). The motor pipe's depth Dm <= D is the servo delay alone: the rotor speeds leaving
+    it are the ones to send now (``omega_now``; with no servo delay, ``omega`` itself), so that the
+    motors act with the servos."""
+    D, Dm = v_pipe.shape[0], motor_pipe.shape[0]
     for k in range(rows.shape[0]):
         i = rows[k]
         if D == 0:
             v_applied[i, :] = v[k, :]
+        else:
+            v_applied[i, :] = v_pipe[0, i, :]
+            for d in range(D - 1):
+                v_pipe[d, i, :] = v_pipe[d + 1, i, :]
+            v_pipe[D - 1, i, :] = v[k, :]
+        if Dm == 0:
             if not keep_motor:
                 omega_now[k, :] = omega[k, :]
             continue
-        v_applied[i, :] = v_pipe[0, i, :]
         omega_now[k, :] = motor_pipe[0, i, :]
-        for d in range(D - 1):
-            v_pipe[d, i, :] = v_pipe[d + 1, i, :]
+        for d in range(Dm - 1):
             motor_pipe[d, i, :] = motor_pipe[d + 1, i, :]
-        v_pipe[D - 1, i, :] = v[k, :]
         if not keep_motor:
-            motor_pipe[D - 1, i, :] = omega[k, :]
+            motor_pipe[Dm - 1, i, :] = omega[k, :]
 
 
 @njit()

@@ -18,7 +18,8 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off), R_bar_accel_diag (3)
     [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled),
-                      accelerometer (the observer takes the flight controller's specific force; default: in air)
+                      accelerometer (the observer takes the flight controller's specific force; default: in air),
+                      latency_s (a measurement's stamp to its command taken, predicted over beyond the servo delay)
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s, rotor_speed_margin_pct,
                       tilt_margin_deg, turbulence_sigmas (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
@@ -122,6 +123,9 @@ class ControllerSettings:
     accelerometer: bool | None = None
     """The observer takes the specific force the accelerometer measures (``FormationController``
     ``measured_accel``). None: in air, not in no air (``Plan.controller_accelerometer``)."""
+    latency_s: float = 0.0
+    """What the controllers' predictor runs ahead by beyond the servo delay [s]: from the instant a
+    measurement is stamped with to the flight controller taking the command that answers it."""
 
 
 @dataclass(frozen=True)
@@ -543,7 +547,9 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
                               cf.number("thrust_adaptation_rate_1_s", 3.0, non_negative=True),
                               cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None,
                               cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True),
-                              cf.flag("accelerometer"))
+                              cf.flag("accelerometer"), cf.number("latency_s", 0.0, non_negative=True))
+    if ctrl.latency_s > 1.0:
+        raise PlanError(f"{cf.where('latency_s')} must be at most 1 s, got {ctrl.latency_s:g}")
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),

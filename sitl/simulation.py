@@ -7,6 +7,7 @@ The agents run exactly what a companion runs (``FormationController`` and ``prot
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
@@ -68,6 +69,10 @@ class SimConfig:
     wind: Wind | None = None
     """The air the plant flies in (its turbulence seeded by ``seed``); None: the plan's ``[wind]``,
     and no air at all (the paper's model) when the plan has none."""
+    latency_s: float | None = None
+    """How long after a measurement's stamp the command that answers it reaches the plant [s]
+    (whole physics steps); None: the plan's ``[controller] latency_s``, which its controllers
+    compensate."""
 
     def __post_init__(self) -> None:
         for name in ("duration_s", "physics_hz", "log_hz"):
@@ -80,6 +85,8 @@ class SimConfig:
             raise ValueError(f"max rpm must be a positive number, got {self.max_rpm!r}")
         if not (math.isfinite(self.mismatch_pct) and -50.0 < self.mismatch_pct < 100.0):
             raise ValueError(f"mismatch must be a percentage between -50 and 100, got {self.mismatch_pct!r}")
+        if self.latency_s is not None and not (math.isfinite(self.latency_s) and 0 <= self.latency_s <= 1.0):
+            raise ValueError(f"latency must be between 0 and 1 s, got {self.latency_s!r}")
         if self.noise is not None and self.estimator is not None:
             raise ValueError("sensor noise and an estimator profile are two ways of saying what is measured: give one")
 
@@ -134,6 +141,12 @@ def flown_wind(plan: Plan, config: SimConfig) -> Wind | None:
     return config.wind if config.wind is not None else plan.wind
 
 
+def command_latency_s(plan: Plan, config: SimConfig) -> float:
+    """How late [s] after a measurement's stamp a simulation's commands reach the plant: the
+    config's latency, else the plan's."""
+    return plan.controller.latency_s if config.latency_s is None else config.latency_s
+
+
 def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimResult:
     """Fly the plan from rest on the ground for ``config.duration_s``."""
     design = plan.check_formation(horizon_s=config.duration_s)
@@ -174,6 +187,8 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
     diverged = diverged_drone = None
     wall0 = time.perf_counter()
     lead = ctrl.lead_s
+    latency_steps = int(round(command_latency_s(plan, config) * config.physics_hz))
+    pending: collections.deque = collections.deque()  # (physics step due, rotor speeds, servo angles)
     for k in range(steps + 1):
         t = k * dt
         y = plant.output()
@@ -213,8 +228,14 @@ def simulate(plan: Plan, config: SimConfig, progress: Callable[[float], None] | 
         topo = plan.schedule.at(ref.t_p)
         v = protocol_input(design, xi, adjacency[topo.name] @ xi, topo.in_degree, topo.pinning, ref.x0, ref.gamma)
         act = ctrl.actuate(v)
-        plant.command(act.omega_rad_s, act.alpha_rad)
-        plant.advance(sub)
+        pending.append((k * sub + latency_steps, act.omega_rad_s, act.alpha_rad))
+        step, end = k * sub, (k + 1) * sub
+        while step < end:  # the plant, with each command taken when due
+            while pending and pending[0][0] <= step:
+                plant.command(*pending.popleft()[1:])
+            due = min(end, pending[0][0]) if pending else end
+            plant.advance(due - step)
+            step = due
     wall = time.perf_counter() - wall0
     return SimResult(plan, config, af_plant, t_log[:row], pos_log[:row], eta_log[:row], omega_log[:row],
                      alpha_log[:row], start, wall, diverged, diverged_drone, ctrl.thrust_scale.copy(),

@@ -73,6 +73,7 @@ def bad(tmp_path, *args):
 def test_nan_parameter(tmp_path):
     assert "--duration-s must be a finite number" in bad(tmp_path, "sim", "--duration-s", "nan")
     assert "--servo-delay-s must not be negative" in bad(tmp_path, "sim", "--servo-delay-s", "-0.01")
+    assert "--latency-s must be at most 1 s, got 5" in bad(tmp_path, "sim", "--latency-s", "5")
 
 
 def test_negative_mass_in_a_scenario_file(tmp_path):

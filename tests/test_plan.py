@@ -60,6 +60,8 @@ def spec_with(paper_spec, path, value):
     (("controller", "accelerometer"), 1, r"controller.accelerometer must be true or false, got 1"),
     (("design", "R_bar_accel_diag"), [0.01, 0.0, 0.01], r"design weight R_bar_accel must be 3 positive numbers"),
     (("controller", "air_density_kg_m3"), -1.2, r"controller.air_density_kg_m3 must not be negative, got -1.2"),
+    (("controller", "latency_s"), -0.01, r"controller.latency_s must not be negative, got -0.01"),
+    (("controller", "latency_s"), 2.0, r"controller.latency_s must be at most 1 s, got 2"),
     (("wind", "speed_m_s"), -4.0, r"wind.speed_m_s must not be negative, got -4.0"),
     (("wind", "turbulence"), "gale", r"wind.turbulence must be none, light, moderate, severe or sigma_w in m/s"),
     (("wind", "gusts"), [{"speed_m_s": 3.0, "duration_s": 2.0}], r"wind.gusts\[0\].start_s is required"),
