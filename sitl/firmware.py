@@ -48,7 +48,8 @@ SITL_PARAMS = (
     ("COMPASS_OFS_X", 5, "the simulated compasses' offsets, as a calibration would find them"),
     ("COMPASS_OFS_Y", 13, ""), ("COMPASS_OFS_Z", -18, ""), ("COMPASS_OFS2_X", 5, ""), ("COMPASS_OFS2_Y", 13, ""),
     ("COMPASS_OFS2_Z", -18, ""), ("COMPASS_OFS3_X", 5, ""), ("COMPASS_OFS3_Y", 13, ""), ("COMPASS_OFS3_Z", -18, ""),
-    ("GPS1_DELAY_MS", 100, "the simulated GPS's lag (SIM_GPS1_LAG_MS), told to the EKF"),
+    ("GPS1_DELAY_MS", 110, "the simulated GPS's lag (SIM_GPS1_LAG_MS, 100 ms) and the driver's reading it at "
+                           "50 Hz (10 ms on average), told to the EKF"),
     ("SIM_GPS1_HZ", 10, "an RTK receiver's 10 Hz, not the simulated one's default 5 Hz"),
     ("GPS1_RATE_MS", 100, "and the driver asks it for 10 Hz"),
     ("EK3_SRC1_POSZ", 3, "height from the GPS: the simulated receiver is RTK-class (no noise), the barometer not"),

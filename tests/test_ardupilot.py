@@ -31,8 +31,8 @@ START_DELAY_S = 60.0
 and take off at the start."""
 SERVO_HZ = 50.0
 TRUTH_BOUNDS = (0.10, 0.03)
-"""The plant's truth of the turning triangle: the paper's position bound; 0.03 rad for EKF3's yaw (measured 0.045 m and
-0.013 rad; docs/flight-controllers.md)."""
+"""The plant's truth of the turning triangle: the paper's position bound; 0.03 rad for EKF3's yaw (measured 0.032-0.038 m
+and 0.014 rad; docs/flight-controllers.md)."""
 
 
 class Commands:
