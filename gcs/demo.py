@@ -50,6 +50,9 @@ FIRMWARE_TELEMETRY_BOUNDS = (0.25, 0.05)
 """With a real firmware the formation is judged on the plant's truth (the paper's bounds) and
 never worse than these in the firmware's own telemetry (its EKF's estimates)."""
 FIRMWARES = {"ardupilot": "ArduPilot", "px4": "PX4"}
+FC_SILENT_S = 15.0
+"""A flight controller unheard for this long [s, wall] in the formation flight is gone: the demo
+stops with one sentence (a firmware that died; a simulator's lockstep can pause one for seconds)."""
 COMPANION_LANDING_S = 120.0
 """The companions' landings descend at their LAND_SPEED, 0.5 m/s: 41 s from the case study's 20 m."""
 SENSOR_NOISE = (("NOISE_POS_M", 0.005), ("NOISE_VEL_MS", 0.01), ("NOISE_ATT_RAD", 0.001), ("NOISE_GYRO_RADS", 0.005),
@@ -100,6 +103,17 @@ def _until_accepted(stack: Stack, link: GroundLink, title: str, ids: list[int], 
             raise _fail(f"{title} refused for {timeout_s:g} s: {({i: outcomes[i][1] for i in todo})}")
         time.sleep(2.0)
     console.print(f"{title}: [green]all drones[/]")
+
+
+def _flight_problem(stack: Stack, link: GroundLink, ids: list[int], silent_s: float = FC_SILENT_S) -> str | None:
+    """Why a flight cannot go on, in one sentence: a process of the stack stopped, or flight
+    controllers unheard for ``silent_s`` [s, wall] (gone, though the processes run: a firmware
+    that died); None while it can."""
+    if (stopped := stack.stopped()) is not None:
+        return stopped
+    if silent := [i for i in ids if time.time() - link.autopilot(i).heartbeat_at > silent_s]:
+        return f"the flight controllers of {_which(silent, f'unheard for {silent_s:g} s')} (logs in {stack.workdir / 'logs'})"
+    return None
 
 
 def _which(ids: list[int], state: str) -> str:
@@ -237,6 +251,8 @@ def demo(
                       TextColumn("{task.fields[errors]}"), console=console) as bar:
             task = bar.add_task("", total=duration_s, errors="")
             while (t := link.fc_now() - start) < duration_s:
+                if (problem := _flight_problem(stack, link, ids)) is not None:
+                    raise _fail(f"formation flight: {problem}")
                 errs = [link.companion(i).named.get("FORM_ERRM", (float("nan"),))[0] for i in ids]
                 bar.update(task, completed=max(0.0, t), errors="error " + " ".join(f"{e:.2f}" for e in errs) + " m")
                 time.sleep(0.25)

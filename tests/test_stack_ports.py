@@ -2,6 +2,8 @@
 free for TCP and UDP, below the kernel's ephemeral range, and never one picked twice. A stack (and the
 demo) that cannot start says why in one sentence and leaves no process behind."""
 
+import os
+import signal
 import subprocess
 import sys
 
@@ -77,4 +79,28 @@ def test_the_demo_names_a_companion_that_stopped_at_start(tmp_path, capsys):
     assert lines == [f"triswarm demo: waiting for heartbeat from every drone and companion: companion-2 stopped "
                      f"(exit status 2): triswarm-companion: error: --rate-hz must be between 1 and 2000, got 0.0 "
                      f"(log: {log})"], lines
+    assert all(p.poll() is not None for p in stack.procs.values())
+
+
+def test_the_demo_gives_up_on_flight_controllers_gone_silent(tmp_path):
+    """Flight controllers that fall silent while every process of the stack runs (a firmware that
+    died, its simulator alive) end the demo's formation flight in one sentence: here the SITL is
+    frozen (SIGSTOP), and both vehicles go unheard."""
+    from triswarm.gcs.demo import _flight_problem
+    from triswarm.gcs.link import GroundLink
+
+    from .poll import poll
+
+    stack = Stack(None, tmp_path / "stack", 2)
+    with stack, GroundLink(stack.endpoints()) as link:
+        poll(lambda: all(link.autopilot(i).heartbeat is not None for i in (1, 2)), 60.0, "both vehicles heard")
+        assert _flight_problem(stack, link, [1, 2], silent_s=5.0) is None
+        sitl = stack.procs["sitl"].pid
+        os.kill(sitl, signal.SIGSTOP)
+        try:
+            poll(lambda: _flight_problem(stack, link, [1, 2], silent_s=5.0) is not None, 60.0, "the silence said")
+        finally:
+            os.kill(sitl, signal.SIGCONT)
+        problem = _flight_problem(stack, link, [1, 2], silent_s=5.0)
+    assert problem == f"the flight controllers of drones 1, 2 unheard for 5 s (logs in {tmp_path / 'stack' / 'logs'})"
     assert all(p.poll() is not None for p in stack.procs.values())
