@@ -77,8 +77,10 @@ def sim(
         finite_option("servo-delay-s", servo_delay_s, non_negative=True)
         finite_option("max-rpm", max_rpm, positive=True)
         finite_option("latency-s", latency_s, non_negative=True)
-        if latency_s is not None and latency_s > 1.0:
-            raise UserError(f"--latency-s must be at most 1 s, got {latency_s:g}")
+        from triswarm.protocol.plan import MAX_LATENCY_S
+
+        if latency_s is not None and latency_s > MAX_LATENCY_S:
+            raise UserError(f"--latency-s must be at most {MAX_LATENCY_S:g} s, got {latency_s:g}")
         if not (math.isfinite(mismatch) and -50 < mismatch < 100):
             raise UserError(f"--mismatch must be a percentage above -50 and below 100, got {mismatch}")
         finite_option("physics-hz", physics_hz, positive=True)

@@ -18,8 +18,7 @@ Schema (all sections but ``formation`` optional; units in the field names):
     [design]          Q_diag (12), R_diag (6), Q_bar_diag (12), R_bar_diag (6), coupling_margin,
                       Q_disturbance_diag (6; zeros switch disturbance estimation off), R_bar_accel_diag (3)
     [controller]      rate_hz, thrust_adaptation_rate_1_s, wind_estimate_rate_1_s, air_density_kg_m3 (drag cancelled),
-                      accelerometer (the observer takes the flight controller's specific force; default: in air),
-                      latency_s (a measurement's stamp to its command taken, predicted over beyond the servo delay)
+                      accelerometer (the observer takes the flight controller's specific force; default: in air), latency_s
     [check]           min_separation_m, position_bound_m, attitude_bound_rad, settle_s, rotor_speed_margin_pct,
                       tilt_margin_deg, turbulence_sigmas (CheckSettings)
     [wind]            the air a simulation flies the plan in (``wind.wind_from_table``), not the controller's"""
@@ -70,6 +69,7 @@ DEFAULT_DURATION_S = 60.0
 MIN_SETTLED_WINDOW_S = 20.0
 """A plan that gives no duration_s lasts 60 s, or longer (whole seconds) so that its settled window
 lasts this long."""
+MAX_LATENCY_S = 1.0  # the most [controller] latency_s (and a simulation's latency) may be [s]
 SEPARATION_ARM_LENGTHS = 8.0
 """Default minimum separation: 8 arm lengths (1.84 m for Table 1's 0.23 m arm), four times the span
 between rotor axes: room for the rotor discs, their downwash and the tracking error."""
@@ -124,8 +124,7 @@ class ControllerSettings:
     """The observer takes the specific force the accelerometer measures (``FormationController``
     ``measured_accel``). None: in air, not in no air (``Plan.controller_accelerometer``)."""
     latency_s: float = 0.0
-    """What the controllers' predictor runs ahead by beyond the servo delay [s]: from the instant a
-    measurement is stamped with to the flight controller taking the command that answers it."""
+    """From a measurement's stamp to its command taken [s] (at most MAX_LATENCY_S): predicted over."""
 
 
 @dataclass(frozen=True)
@@ -548,8 +547,8 @@ def plan_from_dict(data: dict, source: str = "plan") -> Plan:
                               cf.number("air_density_kg_m3", non_negative=True) if "air_density_kg_m3" in cf.data else None,
                               cf.number("wind_estimate_rate_1_s", 1.0, non_negative=True),
                               cf.flag("accelerometer"), cf.number("latency_s", 0.0, non_negative=True))
-    if ctrl.latency_s > 1.0:
-        raise PlanError(f"{cf.where('latency_s')} must be at most 1 s, got {ctrl.latency_s:g}")
+    if ctrl.latency_s > MAX_LATENCY_S:
+        raise PlanError(f"{cf.where('latency_s')} must be at most {MAX_LATENCY_S:g} s, got {ctrl.latency_s:g}")
     cf.done()
     kf = _Fields(source, "check", top.get("check"))
     checks = CheckSettings(kf.number("min_separation_m", default_min_separation_m(af), positive=True),

@@ -19,7 +19,7 @@ import scipy.sparse
 from triswarm.protocol.agent import protocol_input, reference_at
 from triswarm.protocol.airframe import RPM_TO_RAD_S, Airframe
 from triswarm.protocol.controller import FormationController
-from triswarm.protocol.plan import Plan
+from triswarm.protocol.plan import MAX_LATENCY_S, Plan
 from triswarm.protocol.wind import Wind
 
 from .estimator import Estimator, EstimatorProfile
@@ -85,8 +85,8 @@ class SimConfig:
             raise ValueError(f"max rpm must be a positive number, got {self.max_rpm!r}")
         if not (math.isfinite(self.mismatch_pct) and -50.0 < self.mismatch_pct < 100.0):
             raise ValueError(f"mismatch must be a percentage between -50 and 100, got {self.mismatch_pct!r}")
-        if self.latency_s is not None and not (math.isfinite(self.latency_s) and 0 <= self.latency_s <= 1.0):
-            raise ValueError(f"latency must be between 0 and 1 s, got {self.latency_s!r}")
+        if self.latency_s is not None and not (math.isfinite(self.latency_s) and 0 <= self.latency_s <= MAX_LATENCY_S):
+            raise ValueError(f"latency must be between 0 and {MAX_LATENCY_S:g} s, got {self.latency_s!r}")
         if self.noise is not None and self.estimator is not None:
             raise ValueError("sensor noise and an estimator profile are two ways of saying what is measured: give one")
 
