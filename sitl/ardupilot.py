@@ -15,8 +15,11 @@ folder, and the truth log: the plant's true position and attitude of every vehic
 SYSTEM_TIME turns into Unix time as it does their telemetry's stamps): what a flight is judged by
 beside the firmwares' own telemetry.
 
-A firmware silent for FIRMWARE_SILENT_S of wall time while the others wait (it died, or hangs)
-leaves the clock: its motors stop, and the others fly on. It rejoins at its next frame.
+A firmware whose process ends leaves the clock at once (within WATCH_EVERY_S): its motors stop,
+and the others fly on. (ArduPilot resends its frame after 1 s without an answer, and firmwares kept
+waiting for 3 s in flight aborted, one after another, when the answers came again: one firmware's
+end must not starve the others.) A firmware alive but silent for FIRMWARE_SILENT_S of wall time
+while the others wait (it hangs) leaves the clock too. Either rejoins at its next frame.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from .fc import AIRFRAME_PARAMS, plant_airframe
 from .swarm import ground_grid
 
 FIRMWARE_SILENT_S = 3.0
-WATCH_EVERY_S = 0.5
+WATCH_EVERY_S = 0.1
 TRUTH_COLUMNS = "sysid,boot_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad"
 """The truth log's header: the firmwares' clock (seconds since their boot: what their telemetry's
 stamps count), position in the paper's earth frame (x north, y west, z up, from home), attitude as
@@ -169,13 +172,18 @@ class JsonPhysics:
         """Vehicles whose firmware fell silent while the others wait: out of the clock now."""
         left = []
         if self.started and any(self.pending[i] for i in self.members):
-            for i in sorted(self.members):
-                if not self.pending[i] and now - self.heard_at[i] > FIRMWARE_SILENT_S:
-                    self.members.discard(i)
-                    self.counters["left"] += 1
-                    left.append(i)
-            self._step_if_due()
+            left = [i for i in sorted(self.members) if not self.pending[i] and now - self.heard_at[i] > FIRMWARE_SILENT_S]
+            self.leave(left)
         return left
+
+    def leave(self, vehicles: list[int]) -> None:
+        """These vehicles' firmwares leave the clock (their motors stop); the others step on."""
+        for i in vehicles:
+            if i in self.members:
+                self.members.discard(i)
+                self.counters["left"] += 1
+        if vehicles:
+            self._step_if_due()
 
 
 def truth_rows(sysids: list[int], t_s: float, rows: np.ndarray) -> str:
@@ -234,11 +242,14 @@ async def run_ardupilot(opts: ArduPilotOptions, on_ready: Callable[[dict], None]
                 pass
             if truth is not None:
                 truth.flush()  # (readable as it grows)
+            ended = [i for i in sorted(physics.members) if not firmwares[i].alive()]
+            physics.leave(ended)
+            for i in ended:
+                say(f"vehicle {sysids[i]}: its firmware's process ended: its motors stop, the others fly on "
+                    f"({firmwares[i].last_words()})", warning=True)
             for i in physics.watch(time.monotonic()):
-                fw = firmwares[i]
-                why = "its process ended" if not fw.alive() else "it hangs"
-                say(f"vehicle {sysids[i]}: no frame from its firmware for {FIRMWARE_SILENT_S:g} s ({why}): its "
-                    f"motors stop, the others fly on ({fw.last_words()})", warning=True)
+                say(f"vehicle {sysids[i]}: no frame from its firmware for {FIRMWARE_SILENT_S:g} s (it hangs): its "
+                    f"motors stop, the others fly on", warning=True)
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)

@@ -9,7 +9,11 @@ worst beside them (docs/flight-controllers.md)."""
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
+import time
+from pathlib import Path
 
 import pytest
 from pymavlink import mavutil
@@ -30,6 +34,8 @@ START_DELAY_S = 60.0
 """Launch to the plan's start [s, wall]: the three were ready 34-38 s after their launch in make test,
 and take off at the start."""
 SERVO_HZ = 50.0
+RESENT = "No JSON sensor message received"
+"""What ArduPilot's JSON backend prints each second it waits for its physics' answer."""
 TRUTH_BOUNDS = (0.10, 0.03)
 """The plant's truth of the turning triangle: the paper's position bound; 0.03 rad for EKF3's yaw (measured 0.032-0.038 m
 and 0.014 rad; docs/flight-controllers.md)."""
@@ -115,6 +121,27 @@ def test_the_script_drives_the_outputs_only_armed_in_its_mode_and_lets_them_laps
             assert any("triswarm: failsafe" in t for t in gcs.texts()), gcs.texts()[-5:]
             assert any(m.name.rstrip("\x00") == "TSW_STATE" and m.value == 2 for m in gcs.heard("NAMED_VALUE_FLOAT"))
             gcs.command(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+
+
+def test_a_firmware_that_ends_leaves_the_clock_and_the_others_are_not_kept_waiting(tmp_path):
+    """Two firmwares on one lockstep plant; the first killed: the plant says so and steps on with
+    the second at once. The second never waits for its answer long enough for ArduPilot to resend
+    its frame (its log's "No JSON sensor message received", one per second without an answer; the
+    plant used to wait 3 s for a silent firmware, and flying firmwares kept waiting that long
+    aborted one after another when the answers came again)."""
+    with Stack(None, tmp_path, 2, companions=False, autopilot="ardupilot", firmware=arducopter()) as stack:
+        first, second = stack.manifest["vehicles"]
+        with Peer(second["links"]["gcs"]["pymavlink"], 255, 190) as gcs:
+            poll(lambda: gcs.heard("HEARTBEAT"), 60, "a heartbeat from the second firmware")
+            second_log = Path(second["run_dir"]) / "firmware.log"
+            resent = second_log.read_text(errors="replace").count(RESENT)
+            os.kill(first["pid"], signal.SIGKILL)
+            poll(lambda: f"vehicle {first['sysid']}: " in stack.log("sitl"), 10, "the plant saying the first left")
+            beats = len(gcs.heard("HEARTBEAT"))
+            time.sleep(4.0)  # (longer than the 3 s the plant used to wait)
+            assert second_log.read_text(errors="replace").count(RESENT) == resent, \
+                "the second firmware was kept waiting a second for its physics: " + second_log.read_text()[-300:]
+            assert len(gcs.heard("HEARTBEAT")) >= beats + 2  # (the second flies on: 1 Hz)
 
 
 def three_drone_plan(tmp_path):
