@@ -114,6 +114,8 @@ class Px4ZenohLink:
         self._subs: list = []
         self._prestream: asyncio.Task | None = None
         self._signal_at = -math.inf
+        self.clock: Callable[[], float] = time.monotonic
+        """The wall clock the offboard signal's and the origin's rates are kept on [s]."""
         self._origin: tuple | None = None
         self._origin_said = 0.0
         self._asked_mode: int | None = None
@@ -243,7 +245,7 @@ class Px4ZenohLink:
                 and math.isfinite(m.ref_alt)):
             return None
         origin = (round(m.ref_lat * 1e7), round(m.ref_lon * 1e7), round(m.ref_alt * 1000), m.ref_timestamp)
-        now = time.monotonic()
+        now = self.clock()
         if origin == self._origin and now - self._origin_said < ORIGIN_EVERY_S:
             return None
         self._origin, self._origin_said = origin, now
@@ -347,7 +349,7 @@ class Px4ZenohLink:
             controls = [float(c) for c in msg.controls]
             if all(c != c for c in controls[:6]):  # (an answer that commands nothing)
                 continue
-            if (now := time.monotonic()) - self._signal_at >= 1.0 / SIGNAL_HZ:
+            if (now := self.clock()) - self._signal_at >= 1.0 / SIGNAL_HZ:
                 self._signal_at = now
                 self._offboard_signal()
             # (servos first: PX4 sends its outputs on when the motors come). timestamp_sample: the

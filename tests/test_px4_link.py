@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from triswarm.companion.px4_link import Px4ZenohLink
+from triswarm.companion.px4_link import SIGNAL_HZ, Px4ZenohLink
 from triswarm.protocol import px4_msgs as px4
 from triswarm.protocol.mavlink import mavlink
 
@@ -87,6 +87,8 @@ def test_a_command_carries_the_sample_it_answers(link):
     goes with them at most SIGNAL_HZ."""
     put: list[tuple[str, object]] = []
     link._put = lambda topic, payload: put.append((topic, px4.decode(px4.TOPICS_IN[topic], payload)))
+    now_s = [0.0]
+    link.clock = lambda: now_s[0]  # (the signal's rate is judged on a clock of the test's, not the machine's speed)
     controls = [0.5, 0.6, 0.7, 0.1, -0.2, 0.3, NAN, NAN]
     frame = mavlink.MAVLink_set_actuator_control_target_message(7_250_000, 0, 1, 1, controls).pack(link._parser)
     link.write(frame)
@@ -101,3 +103,7 @@ def test_a_command_carries_the_sample_it_answers(link):
     put.clear()  # the next command, at once: the offboard signal went with the last one (SIGNAL_HZ at most)
     link.write(frame)
     assert [t for t, _ in put] == ["actuator_servos", "actuator_motors", "vehicle_thrust_setpoint"]
+    put.clear()  # one signal period later: it goes again
+    now_s[0] += 1.0 / SIGNAL_HZ
+    link.write(frame)
+    assert [t for t, _ in put][0] == "offboard_control_mode"
