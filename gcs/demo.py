@@ -26,7 +26,6 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, Progress, TextColumn
 
-from triswarm.protocol import metrics
 from triswarm.protocol.autopilots import flies_itself, launch_mode_command
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
@@ -171,6 +170,9 @@ def demo(
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)
+        if duration_s <= plan.settled_from_s:
+            raise UserError(f"--duration-s {duration_s:g} ends before the settled window the formation is judged over "
+                            f"begins ({plan.settled_from_s:g} s: the entry's end plus {plan.check_settings.settle_s:g} s)")
     items = encode_plan(plan.spec)
     pid = decode_plan(items)[1]
     run = out or Path("runs") / _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -182,7 +184,7 @@ def demo(
                           soft_wrap=True)
         raise typer.Exit(code=2) from None
     n = plan.n_agents
-    window = f"[{metrics.settled_window_start_s(plan, duration_s):g} s, {duration_s:g} s]"
+    window = f"[{plan.settled_from_s:g} s, {duration_s:g} s]"
     console.print(f"[bold]triswarm demo[/]: {plan.name}, {n} drones, {duration_s:g} s of formation flight -> {run}")
     if real:
         console.print(f"{FIRMWARES[autopilot]}'s firmware ({firmware}) flying triswarm's plant, its EKF's estimates "

@@ -133,6 +133,18 @@ def test_sitl_up_bad_input(tmp_path):
         taken.close()
 
 
+def test_demo_bad_input(tmp_path):
+    """The demo refuses what it cannot fly or judge, before it starts anything."""
+    assert "--max-rtf must be a positive number and goes with --lockstep, got 2.0 without --lockstep" in \
+        bad(tmp_path, "demo", "--max-rtf", "2")
+    assert "--autopilot must be triswarm, ardupilot or px4, got 'betaflight'" in bad(tmp_path, "demo", "--autopilot", "betaflight")
+    # the case study's entry ends at 15 s; its flight is judged from 10 s later: a shorter flight is refused
+    line = bad(tmp_path, "demo", "--duration-s", "20")
+    assert "--duration-s 20 ends before the settled window the formation is judged over begins (25 s: the entry's " \
+           "end plus 10 s)" in line, line
+    assert not (tmp_path / "runs").exists()
+
+
 def test_sitl_up_stops_cleanly_on_sigint(tmp_path):
     import signal
     import time
