@@ -1,4 +1,5 @@
-# triswarm: `make demo` runs the paper's case study, `make test` the tests, `make bench` the benchmarks,
+# triswarm: `make demo` runs the paper's case study, `make test` the tests (`make test-slow` the long
+# flights), `make bench` the benchmarks,
 # `make fuzz` fuzzes every face of the companion (100,000 inputs each),
 # `make docs` regenerates the CLI reference docs/cli.md, `make dialect` the MAVLink dialect's module.
 # Every target creates (once) and uses the project's own virtual environment in .venv.
@@ -15,7 +16,7 @@ STAMP  := $(VENV)/.installed-stamp
 unexport PYTHONDONTWRITEBYTECODE
 ONE_CORE := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 
-.PHONY: demo test bench fuzz docs dialect venv clean lint netns-tools
+.PHONY: demo test test-slow bench fuzz docs dialect venv clean lint netns-tools
 
 # The packages go in with uv, installed in the venv first (the whole set-up takes 5 s on two cores,
 # against 12-17 s with pip); where uv cannot reach an index (pip's own configuration, a mirror, is
@@ -38,8 +39,13 @@ demo: $(STAMP)
 
 # Two workers for everything on simulated time or with no clock at all; beside them, ahead of them
 # (niceness -10, as root), the few tests that judge something on the wall clock (tests/run_suite.py).
+# `make test`: every test but the slow ones (a whole scenario flown for tens of seconds), which
+# `make test-slow` runs; CI runs both (.ci/run).
 test: $(STAMP) netns-tools lint
-	$(PY) tests/run_suite.py
+	$(PY) tests/run_suite.py --quick
+
+test-slow: $(STAMP) netns-tools
+	$(PY) tests/run_suite.py --slow
 
 lint: $(STAMP)
 	$(PY) -m ruff check --quiet .

@@ -1,4 +1,4 @@
-"""The design's solved Riccati equations kept on disk across runs (``protocol.design.keep_solutions``),
+"""The design's solved Riccati equations kept on disk across runs (``protocol.solutions.keep_solutions``),
 as numba keeps the compiled code: python-control, which solves them, takes about 0.7 s of CPU to
 import (it brings scipy.signal and matplotlib), the design itself 10 ms. Every companion, SITL and
 ``plan check`` would pay that at its start, and a restarted companion would keep its vehicle in the
@@ -19,7 +19,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import triswarm.protocol
-from triswarm.protocol import design
+from triswarm.protocol.solutions import keep_solutions
 
 from .state import write_atomically
 
@@ -68,4 +68,4 @@ def keep_on_disk(path: Path | None = None) -> None:
         except OSError:
             pass  # (kept nowhere: solved again next time)
 
-    design.keep_solutions(load, save)
+    keep_solutions(load, save)

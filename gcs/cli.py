@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
+import functools
+import importlib
 import sys
 from typing import Annotated
 
 import typer
 
 from .errors import console, err_console
-from .plan_cmd import plan_app
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
-                  help="triswarm: formation flight for swarms of tri-rotor drones.")
-app.add_typer(plan_app, name="plan")
+ROOT_HELP = "triswarm: formation flight for swarms of tri-rotor drones."
 
 
 def _version(value: bool) -> None:
@@ -23,30 +22,44 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
-@app.callback()
 def _root(
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")] = False,
 ) -> None:
     """triswarm: formation flight for swarms of tri-rotor drones."""
 
 
-from .sim_cmd import sim  # noqa: E402
-from .sitl_cmd import sitl_app  # noqa: E402
-from .plot_cmd import plot  # noqa: E402
-from .swarm_cmd import register  # noqa: E402
-from .demo import demo  # noqa: E402
-from .monitor import monitor  # noqa: E402
-from .pki_cmd import pki_app  # noqa: E402
-from .deploy_cmd import deploy  # noqa: E402
+# The commands in the order the help lists them: name, module, and the command (a function) or group
+# (a Typer) it holds.
+PARTS = (("plan", "plan_cmd", "plan_app"), ("sim", "sim_cmd", "sim"), ("sitl", "sitl_cmd", "sitl_app"),
+         ("plot", "plot_cmd", "plot"), ("demo", "demo", "demo"), ("monitor", "monitor", "monitor"),
+         ("leader", "swarm_cmd", "leader_app"), ("arm", "swarm_cmd", "arm"), ("takeoff", "swarm_cmd", "takeoff"),
+         ("land", "swarm_cmd", "land"), ("disarm", "swarm_cmd", "disarm"), ("pki", "pki_cmd", "pki_app"),
+         ("deploy", "deploy_cmd", "deploy"))
+COMMANDS = tuple(name for name, _, _ in PARTS)
 
-app.command("sim")(sim)
-app.add_typer(sitl_app, name="sitl")
-app.command("plot")(plot)
-app.command("demo")(demo)
-app.command("monitor")(monitor)
-register(app, plan_app)
-app.add_typer(pki_app, name="pki")
-app.command("deploy")(deploy)
+
+@functools.cache
+def build(command: str | None = None) -> typer.Typer:
+    """The CLI: every command (None), or only ``command`` (one of ``COMMANDS``). A command's module is
+    imported only when it is there: the modules bring what their commands need (numba's kernels, the
+    MAVLink dialect, matplotlib: seconds of CPU on a slow machine), which `triswarm sim --help` or a
+    mistyped option should not wait for."""
+    app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None, help=ROOT_HELP)
+    app.callback()(_root)
+    for name, module, attribute in PARTS:
+        if command in (None, name):
+            part = getattr(importlib.import_module(f"{__package__}.{module}"), attribute)
+            if isinstance(part, typer.Typer):
+                app.add_typer(part, name=name)
+            else:
+                app.command(name)(part)
+    return app
+
+
+def __getattr__(name: str) -> typer.Typer:
+    if name == "app":  # the whole CLI (tools/gen_cli_docs.py, tests)
+        return build()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main() -> None:
@@ -54,7 +67,8 @@ def main() -> None:
 
     keep_on_disk()  # (the design's solved equations kept across runs: plan check, sim, sitl up, demo)
     try:
-        app()
+        args = sys.argv[1:]
+        build(args[0] if args and args[0] in COMMANDS else None)()
     except KeyboardInterrupt:
         err_console.print("triswarm: interrupted")
         sys.exit(130)

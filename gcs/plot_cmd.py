@@ -11,11 +11,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.table import Table
 
-from triswarm.protocol.frames import LocalProjection
-
 from .errors import UserError, console, require_positive, short_number, user_errors
 from .scenarios import load_plan
-from .tracks import on_grid
 
 if TYPE_CHECKING:
     from triswarm.protocol import metrics
@@ -50,6 +47,7 @@ def plot(
 
     from . import plots, report
     from .runlog import read_run_log
+    from .tracks import on_grid
 
     from .truth import read_truth
 
@@ -131,6 +129,8 @@ def _run_info(path: Path) -> tuple[float, float | None, tuple[float, float, floa
     if end is not None and not _number(end):
         raise UserError(f"{path}: formation_end_s must be a number of seconds of plan time, got {end!r}")
     home = info.get("home")
+    from triswarm.protocol.frames import LocalProjection
+
     if home is None:
         return float(start), None if end is None else float(end), None
     try:

@@ -266,12 +266,3 @@ def land(manifest: Manifest = None, endpoint: Endpoints = None, drone: Drones = 
         return
     with swarm_link(manifest, endpoint, drone, tlog, signing_key) as (link, chosen):
         report("land (by the companions)", command_all(link, chosen, COMP_ONBOARD, mavlink.MAV_CMD_NAV_LAND, []))
-
-
-def register(app: typer.Typer, plan_app: typer.Typer) -> None:
-    plan_app.command("upload")(upload)
-    plan_app.command("download")(download)
-    plan_app.command("clear")(clear)
-    app.add_typer(leader_app, name="leader")
-    for fn in (arm, takeoff, land, disarm):
-        app.command(fn.__name__)(fn)

@@ -10,7 +10,6 @@ be Hurwitz (the paper's (77) "A_r + c F C_r" with its F = -ours).
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -21,6 +20,7 @@ from . import kernels
 from .errors import FormationError, ParameterError
 from .graph import Schedule
 from .rfl import RFL
+from .solutions import kept
 
 ROW_GROUPS = (
     (slice(0, 3), "velocity rows 1-3"),
@@ -269,23 +269,11 @@ def accel_model(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray
     return A_b, B_b, C_b
 
 
-_kept: tuple[Callable[[str], bytes | None], Callable[[str, bytes], None]] | None = None
-
-
-def keep_solutions(load: Callable[[str], bytes | None], save: Callable[[str, bytes], None]) -> None:
-    """Keep the design's solved Riccati equations across runs, as ``jit.cache_on_disk`` keeps the
-    compiled code: ``save(key, blob)`` stores a solution, ``load(key)`` gives it back (None when it
-    has none). For the edges, which read and write the files. A design whose equations are all kept
-    does not import python-control (about 0.7 s: it brings scipy.signal and matplotlib) for its 10 ms
-    of work. A blob that is not whole (its digest) is solved again."""
-    global _kept
-    _kept = (load, save)
-
-
 def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``control.lqr(A, B, Q, R)`` (kind "lqr") or ``control.lqe(A, G, C, Q_n, R_n)`` ("lqe"): the
-    gain and the Riccati equation's solution, kept by ``keep_solutions`` under a digest of the
+    gain and the Riccati equation's solution, kept by ``solutions.keep_solutions`` under a digest of the
     matrices. Kept or solved, they are the same bits."""
+    store = kept()
     mats = [np.ascontiguousarray(m, dtype="<f8") for m in matrices]
     digest = hashlib.sha256(kind.encode())
     for m in mats:
@@ -294,7 +282,7 @@ def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     key = f"{kind}-{digest.hexdigest()}"
     n = mats[0].shape[0]
     gain_shape = (mats[1].shape[1], n) if kind == "lqr" else (n, mats[2].shape[0])
-    blob = _kept[0](key) if _kept is not None else None
+    blob = store[0](key) if store is not None else None
     if blob is not None and len(blob) == 32 + 8 * (gain_shape[0] * gain_shape[1] + n * n) \
             and hashlib.sha256(blob[32:]).digest() == blob[:32]:
         values = np.frombuffer(blob, dtype="<f8", offset=32).astype(float)
@@ -305,9 +293,9 @@ def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     import control
 
     gain, P = (np.asarray(x, dtype=float) for x in (control.lqr if kind == "lqr" else control.lqe)(*mats)[:2])
-    if _kept is not None:
+    if store is not None:
         payload = gain.astype("<f8").tobytes() + P.astype("<f8").tobytes()
-        _kept[1](key, hashlib.sha256(payload).digest() + payload)
+        store[1](key, hashlib.sha256(payload).digest() + payload)
     return gain, P
 
 

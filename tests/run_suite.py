@@ -1,6 +1,9 @@
-"""`make test`: every test, in the least wall time that keeps the real-time ones honest.
+"""`make test` and `make test-slow`: the tests, in the least wall time that keeps the real-time ones
+honest.
 
-Two pytest runs:
+Two tiers: `make test` runs every test not marked ``slow``, `make test-slow` the ``slow`` ones (a whole
+scenario flown for tens of seconds: the whole stack's long flights, the firmwares' formations,
+swarms in-process); CI runs both. Each tier is two pytest runs:
 - the tests on simulated time or with no clock at all, on two workers (pytest-xdist; a worker
   that runs out of tests takes some of the other's, so neither idles while a long one is queued).
   (Measured: a third worker on two cores took a minute off, but starved whole-stack tests for over
@@ -17,7 +20,7 @@ mind: their verdicts do not depend on the machine's speed.) Without root nothing
 the workers, so the real-time run waits for them and has the machine to itself. Its output follows
 the other's. The exit status is the worse of the two.
 
-    python tests/run_suite.py [pytest arguments for both runs...]
+    python tests/run_suite.py [--slow | --all] [pytest arguments for both runs...]
 """
 
 from __future__ import annotations
@@ -48,20 +51,26 @@ def warm_up() -> None:
             print(f"run_suite: compiling the kernels of the {part} failed (exit status {p.returncode})", flush=True)
 
 
+TIERS = {"--quick": "not slow", "--slow": "slow", "--all": None}  # make test, make test-slow, both at once
+NO_TESTS = 5  # pytest's exit status when the selection is empty: no failure
+
+
 def main(args: list[str]) -> int:
+    tier = TIERS[args.pop(0)] if args and args[0] in TIERS else TIERS["--quick"]
+    within = "" if tier is None else f" and {tier}"
     warm_up()
-    simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime", "--durations=15", *args]
-    realtime = PYTEST + ["-m", "realtime", "-p", "no:cacheprovider", "--durations=25", *args]
+    simulated = PYTEST + ["-n", "2", "--dist", "worksteal", "-m", "not realtime" + within, "--durations=15", *args]
+    realtime = PYTEST + ["-m", "realtime" + within, "-p", "no:cacheprovider", "--durations=25", *args]
     if os.geteuid() != 0:
-        first = subprocess.call(simulated, cwd=ROOT)
-        return max(first, subprocess.call(realtime, cwd=ROOT))
+        first = _status(subprocess.call(simulated, cwd=ROOT))
+        return max(first, _status(subprocess.call(realtime, cwd=ROOT)))
     with tempfile.TemporaryFile("w+") as log:
         beside = subprocess.Popen(command(-10) + realtime, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
         behind = None
         try:
             behind = subprocess.Popen(command(19) + simulated, cwd=ROOT)
-            first = behind.wait()
-            second = beside.wait()
+            first = _status(behind.wait())
+            second = _status(beside.wait())
         finally:  # (interrupted: leave nothing behind; both run in sessions of their own, out of Ctrl-C's reach)
             for p in (beside, behind):
                 if p is not None and p.poll() is None:
@@ -72,6 +81,11 @@ def main(args: list[str]) -> int:
         sys.stdout.write(log.read())
         sys.stdout.flush()
     return max(first, second)
+
+
+def _status(code: int) -> int:
+    return 0 if code == NO_TESTS else code
+
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

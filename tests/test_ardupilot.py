@@ -26,7 +26,7 @@ from .firmware_helpers import Peer, arducopter
 from .stack_helpers import judge, judge_truth
 from .poll import poll
 
-pytestmark = [pytest.mark.slow, pytest.mark.realtime]
+pytestmark = pytest.mark.realtime
 MAV = mavutil.mavlink
 CMD_TIMEOUT_S = 0.2       # TSW_CMD_TOUT's default
 READY_S = 150.0           # boot to a position estimate: 40 s of the firmware's clock, longer on a busy machine
@@ -157,6 +157,7 @@ def three_drone_plan(tmp_path):
     return path, plan_from_dict(spec, str(path))
 
 
+@pytest.mark.slow
 def test_three_drones_take_off_from_the_ground_and_fly_a_formation_on_ardupilot(tmp_path):
     """Three ArduCopter firmwares, one companion process flying all three with --autostart: each
     drone rests on the ground, ArduPilot takes it off (GUIDED) and hands it over, and the three fly

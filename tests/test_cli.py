@@ -220,3 +220,25 @@ def test_a_bug_is_not_called_a_user_error(monkeypatch, capsys):
         err = capsys.readouterr().err
         assert got.value.code == 1 and "Traceback" in err and str(exc) in err, err
         assert "triswarm: internal error: a bug in triswarm" in err and "triswarm: error:" not in err, err
+
+
+def test_a_command_imports_only_what_it_needs():
+    """A command's help, or its refusal of a mistyped option, comes before numba's kernels, SciPy,
+    matplotlib or the MAVLink dialect are imported (seconds of CPU on a slow machine); a command
+    that designs imports them."""
+    heavy = ("numpy", "numba", "scipy", "matplotlib", "control", "zenoh", "pymavlink",
+             "triswarm.protocol.dialect.triswarm_v20")
+    probe = ("import sys\nfrom triswarm.gcs import cli\nsys.argv = ['triswarm', *sys.argv[1:]]\ncode = 0\n"
+             "try:\n    cli.main()\nexcept SystemExit as e:\n    code = e.code\n"
+             f"print(code, *(m for m in {heavy!r} if m in sys.modules))")
+
+    def imported(*args: str) -> list[str]:
+        r = subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.strip().splitlines()[-1].split()
+
+    assert imported("sim", "--duration-s", "nan") == ["2"]
+    for command in (["sim"], ["plot"], ["deploy"], ["pki", "init"]):
+        assert imported(*command, "--help") == ["0"], command
+    designed = imported("plan", "check", "paper-hexagon", "--no-simulate", "--json")
+    assert designed[0] == "0" and {"numpy", "numba", "scipy"} <= set(designed), designed

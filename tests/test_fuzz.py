@@ -63,6 +63,7 @@ def test_plan_files():
     assert report.counters.get("mutated_plan.accepted", 0) > 0, report.text()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("face", STACK_FACES)
 def test_valid_messages_with_hostile_values(tmp_path, face):

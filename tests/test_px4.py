@@ -32,7 +32,7 @@ from .firmware_helpers import px4_package
 from .poll import poll
 from .stack_helpers import judge, judge_truth
 
-pytestmark = [pytest.mark.slow, pytest.mark.realtime]
+pytestmark = pytest.mark.realtime
 START_DELAY_S = 20.0
 """Launch to the plan's start [s, wall]. The firmwares are ready 4 s after their launch, but with 12 s
 two fresh-clone runs of four lost one drone's offboard stream (PX4 heard none of the companion's
@@ -72,6 +72,7 @@ def modes(rec: Recorder, sysid: int, since_unix: float = -math.inf) -> list[tupl
     return [(t, px4.mode_name(mode), armed) for t, mode, armed in rec.modes.get(sysid, []) if t >= since_unix]
 
 
+@pytest.mark.slow
 def test_drones_take_off_from_the_ground_fly_a_formation_and_land_on_px4(tmp_path):
     """FLIGHT_DRONES PX4 firmwares, one companion process flying them all with --autostart: each drone
     rests on the ground, the companion switches PX4 to offboard and takes it off with its own

@@ -59,6 +59,7 @@ def test_six_drones_in_the_worst_air_stay_bounded(estimated):
     assert bounded == estimated, (result.diverged_at_s, perf)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("estimated", [True, False], ids=["estimated", "off"])
 def test_fifty_drones_in_8_m_s_with_moderate_turbulence_stay_bounded(estimated):
     """8 m/s from the north with moderate turbulence, 50 drones. Measured (seed 0): 0.47 m and
