@@ -48,7 +48,6 @@ def plot(
     from . import plots, report
     from .runlog import read_run_log
     from .tracks import on_grid
-
     from .truth import read_truth
 
     with user_errors():
@@ -129,10 +128,10 @@ def _run_info(path: Path) -> tuple[float, float | None, tuple[float, float, floa
     if end is not None and not _number(end):
         raise UserError(f"{path}: formation_end_s must be a number of seconds of plan time, got {end!r}")
     home = info.get("home")
-    from triswarm.protocol.frames import LocalProjection
-
     if home is None:
         return float(start), None if end is None else float(end), None
+    from triswarm.protocol.frames import LocalProjection
+
     try:
         home_lla = tuple(home[k] for k in ("lat_deg", "lon_deg", "alt_m"))
         if not all(map(_number, home_lla)):
