@@ -30,7 +30,7 @@ from triswarm.protocol.autopilots import flies_itself, launch_mode_command
 from triswarm.protocol.mavlink import COMP_AUTOPILOT, COMP_ONBOARD, mavlink
 from triswarm.protocol.plan_transfer import decode_plan, encode_plan
 
-from .errors import UserError, console, err_console, require_positive, user_errors
+from .errors import UserError, console, err_console, require_positive, require_settled_window, user_errors
 from .link import GroundLink, LinkError
 from .plot_cmd import plot
 from .scenarios import DEFAULT_PLAN, PlanArgument, plan_text, read_plan_spec
@@ -170,9 +170,7 @@ def demo(
         spec, label = read_plan_spec(plan_name)
         plan = plan_from_dict(spec, label)
         plan.check(horizon_s=duration_s)
-        if duration_s <= plan.settled_from_s:
-            raise UserError(f"--duration-s {duration_s:g} ends before the settled window the formation is judged over "
-                            f"begins ({plan.settled_from_s:g} s: the entry's end plus {plan.check_settings.settle_s:g} s)")
+        require_settled_window(plan, duration_s, "--duration-s")
     items = encode_plan(plan.spec)
     pid = decode_plan(items)[1]
     run = out or Path("runs") / _dt.datetime.now().strftime("%Y%m%d-%H%M%S")

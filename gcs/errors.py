@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
@@ -18,6 +19,9 @@ from rich.console import Console
 from triswarm.companion.errors import CompanionError
 from triswarm.protocol.errors import ProtocolError
 from triswarm.sitl.errors import SitlError
+
+if TYPE_CHECKING:
+    from triswarm.protocol.plan import Plan
 
 console = Console()
 err_console = Console(stderr=True)
@@ -53,6 +57,14 @@ def require_positive(**options: float | None) -> None:
     for name, value in options.items():
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+
+
+def require_settled_window(plan: Plan, end_s: float, option: str) -> None:
+    """A flight of ``plan`` that ends at ``end_s`` (given by ``option``) reaches the settled window it
+    is judged over, or that is the user's mistake."""
+    if end_s <= plan.settled_from_s:
+        raise UserError(f"{option} {end_s:g} ends before the settled window the formation is judged over begins "
+                        f"({plan.settled_from_s:g} s: the entry's end plus {plan.check_settings.settle_s:g} s)")
 
 
 def short_number(x: float | None) -> str:

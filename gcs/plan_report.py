@@ -17,7 +17,7 @@ from triswarm.protocol import air_margin
 from triswarm.protocol.airframe import RPM_TO_RAD_S
 from triswarm.protocol.errors import PlanError
 
-from .errors import UserError, console, user_errors
+from .errors import console, require_settled_window, user_errors
 from .report import design_summary
 
 if TYPE_CHECKING:
@@ -47,9 +47,7 @@ def check_and_report(plan: Plan, horizon_s: float | None, no_simulate: bool, max
                                                          c.turbulence_sigmas, c.rotor_speed_margin_pct, c.tilt_margin_deg)
         flight = None
         if not no_simulate:
-            if horizon <= plan.settled_from_s:
-                raise UserError(f"--horizon-s {horizon:g} ends before the settled window the flight is judged over "
-                                f"begins ({plan.settled_from_s:g} s)")
+            require_settled_window(plan, horizon, "--horizon-s")
             from . import plan_flight
 
             flight = plan_flight.fly(plan, horizon)

@@ -20,7 +20,7 @@ mind: their verdicts do not depend on the machine's speed.) Without root nothing
 the workers, so the real-time run waits for them and has the machine to itself. Its output follows
 the other's. The exit status is the worse of the two.
 
-    python tests/run_suite.py [--slow | --all] [pytest arguments for both runs...]
+    python tests/run_suite.py [--quick | --slow | --all] [pytest arguments for both runs...]
 """
 
 from __future__ import annotations
