@@ -281,7 +281,7 @@ def _zenoh_check_config(v: dict[str, Any]):
     the running companion's ports, and only needs to reach the others."""
     import zenoh
 
-    from .bus import peer_config, tune
+    from .zenoh_session import peer_config, tune
 
     if v.get("zenoh_config") is not None:
         try:
@@ -322,7 +322,7 @@ def _check_zenoh(c: Checks, v: dict[str, Any]) -> None:
     except ImportError as exc:
         c.fail("zenoh", f"eclipse-zenoh is not importable ({exc})")
         return
-    from .bus import close_session, open_session
+    from .zenoh_session import close_session, open_session
 
     box: dict[str, Any] = {}
 

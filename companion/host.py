@@ -21,7 +21,8 @@ from triswarm.protocol.plan import PlanError, plan_from_dict
 
 from .agent import Agent
 from .options import CompanionOptions
-from .bus import Bus, close_session, copies_backup, default_config, open_session, peer_config, tune
+from .bus import Bus
+from .zenoh_session import close_session, copies_backup, default_config, open_session, peer_config, tune
 from .flight import SharedEntry
 from .loop import ControlLoop
 
@@ -30,7 +31,7 @@ WARM_UP_PLAN = {"drones": 1, "formation": {"type": "rotating-polygon", "radius_m
 
 def zenoh_config(o: CompanionOptions, agents: frozenset[int], n_agents: int):
     """The Zenoh configuration of a process flying ``agents``: the file, the endpoints given, or
-    peers on loopback (``bus.default_config``)."""
+    peers on loopback (``zenoh_session.default_config``)."""
     import zenoh
 
     if o.zenoh_config is not None:

@@ -51,7 +51,7 @@ import zenoh
 from triswarm.protocol import px4_msgs as px4
 from triswarm.protocol.mavlink import mavlink, new_codec, plausible_unix_us
 
-from .bus import close_session, open_session, peer_config
+from .zenoh_session import close_session, open_session, peer_config
 
 SCHEME = "px4-zenoh"
 PRESTREAM_S = 0.3

@@ -355,7 +355,7 @@ def _link(layout: Layout, name: str, listen: bool, protocols: list[str]) -> dict
         "verify_name_on_connect": True,
         "close_link_on_expiration": True,
     }
-    from triswarm.companion.bus import KEEP_ALIVES_PER_LEASE, LEASE_MS
+    from triswarm.companion.zenoh_session import KEEP_ALIVES_PER_LEASE, LEASE_MS
 
     return {"protocols": protocols, "tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVES_PER_LEASE}, "tls": tls}
 

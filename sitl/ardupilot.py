@@ -43,7 +43,7 @@ from triswarm.protocol.wind import Wind
 from .firmware import SERIAL_COMPANION, SERIAL_GCS, Firmware, FirmwareError, FirmwareSpec
 from .json_physics import OutputMap, decode_servo_packet, frame_period_s, state_json
 from .physics import SENSOR_COLUMNS, Plant
-from .fc import AIRFRAME_PARAMS, plant_airframe
+from .params import AIRFRAME_PARAMS, plant_airframe
 from .swarm import ground_grid
 
 FIRMWARE_SILENT_S = 3.0
@@ -68,7 +68,7 @@ class ArduPilotOptions:
     wind: Wind | None = None
     seed: int = 0
     params: tuple[tuple[str, float], ...] = ()
-    """Airframe parameters (``fc.AIRFRAME_PARAMS``: the plant's) and firmware parameters (the rest)."""
+    """Airframe parameters (``params.AIRFRAME_PARAMS``: the plant's) and firmware parameters (the rest)."""
     duration_s: float | None = None
     truth_path: Path | None = None
     truth_hz: float = 50.0

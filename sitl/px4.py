@@ -42,7 +42,7 @@ from triswarm.protocol import px4_msgs as px4
 from triswarm.protocol.airframe import TABLE_1
 
 from .ardupilot import TRUTH_COLUMNS, ArduPilotOptions, split_params, truth_rows
-from .fc import plant_airframe
+from .params import plant_airframe
 from .firmware import FirmwareError, FirmwareProcess, free_tcp_ports
 from .physics import Plant
 from .processes import spawn

@@ -15,7 +15,7 @@ import numpy as np
 import zenoh
 from pymavlink import mavutil
 
-from triswarm.companion.bus import peer_config
+from triswarm.companion.zenoh_session import peer_config
 from triswarm.protocol import metrics
 
 from .poll import poll

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from triswarm.companion.bus import COPY_EVERY, Bus, close_session, copies_backup, default_config, peer_config, tune
+from triswarm.companion.bus import COPY_EVERY, Bus
+from triswarm.companion.zenoh_session import close_session, copies_backup, default_config, peer_config, tune
 from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import AgentStatus, Estimate, alive_key, encode_estimate, estimate_key, status_key
 

@@ -26,7 +26,8 @@ import typer
 import zenoh
 from typer.testing import CliRunner
 
-from triswarm.companion.bus import Bus, tune
+from triswarm.companion.bus import Bus
+from triswarm.companion.zenoh_session import tune
 from triswarm.gcs import pki
 from triswarm.gcs.pki_cmd import pki_app
 from triswarm.gcs.stack import free_ports

@@ -27,7 +27,8 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from triswarm.companion.bus import COPY_EVERY, Bus, close_session, default_config  # noqa: E402
+from triswarm.companion.bus import COPY_EVERY, Bus  # noqa: E402
+from triswarm.companion.zenoh_session import close_session, default_config  # noqa: E402
 from triswarm.protocol.codec import AgentStatus, decode_header, estimate_key  # noqa: E402
 
 PLAN, RATE_HZ, BEFORE, AFTER = 0x5EED, 200.0, 200, 400

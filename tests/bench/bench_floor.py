@@ -33,7 +33,8 @@ WARM_UP_S = 8.0  # from the skeletons' start to the measurement (imports, sessio
 
 def skeleton(agent: int, n: int, fc_url: str, zenoh_base_port: int, rate_hz: float, zenoh: bool,
              router_port: int | None) -> None:
-    from triswarm.companion.bus import Bus, default_config, peer_config
+    from triswarm.companion.bus import Bus
+    from triswarm.companion.zenoh_session import default_config, peer_config
     from triswarm.companion.links import MavLink
     from triswarm.protocol.codec import AgentStatus
     from triswarm.protocol.mavlink import COMP_ONBOARD, mavlink

@@ -51,7 +51,8 @@ def peer(i: int, n: int, layout: str, snapshot_at: float, out: Path) -> None:
     """One peer, until two seconds after ``snapshot_at`` (Unix time); writes what it heard to ``out``."""
     import numpy as np
 
-    from triswarm.companion.bus import Bus, copies_backup, peer_config
+    from triswarm.companion.bus import Bus
+    from triswarm.companion.zenoh_session import copies_backup, peer_config
     from triswarm.protocol.codec import AgentStatus, agent_of_key
 
     copies = LAYOUTS[layout][1]

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import zenoh
 
-from triswarm.companion.bus import peer_config
+from triswarm.companion.zenoh_session import peer_config
 from triswarm.gcs.scenarios import read_plan_spec
 from triswarm.gcs.stack import free_ports
 from triswarm.protocol.codec import (ESTIMATE_SIZE, AgentStatus, Estimate, alive_key, encode_estimate, estimate_key,
