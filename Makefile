@@ -77,6 +77,7 @@ bench: $(STAMP)
 	$(ONE_CORE) $(PY) tests/bench/bench_stack.py --agents-per-process 1 --sizes 2,4,6,8
 	$(ONE_CORE) $(PY) tests/bench/bench_floor.py
 	$(ONE_CORE) $(PY) tests/bench/bench_wind.py
+	$(ONE_CORE) $(PY) tests/bench/bench_goal.py
 	$(ONE_CORE) $(PY) tests/bench/bench_rates.py
 	$(ONE_CORE) $(PY) tests/bench/bench_estimators.py
 	$(ONE_CORE) $(PY) tests/bench/bench_zenoh_loss.py
