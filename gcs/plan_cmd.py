@@ -38,7 +38,7 @@ def check(
     """Check a plan as Algorithm 1 does, certify its switching, and fly it in simulation.
 
     The checks: (76) per drone, Assumption 1 per topology, (91) and the Hurwitz conditions (77),
-    the rotor speeds and servo angles that flying the formation exactly needs, the margins that
+    the same loops sampled at the control rate (every pole within the unit circle), the rotor speeds and servo angles that flying the formation exactly needs, the margins that
     leaves to the motor limit and the servo range in the plan's design air ([wind]: its steady wind,
     its gusts at their peak, 3 sigma of its turbulence from the worst direction), the certificate of
     the switched formation-error system, and the minimum separation along the reference. Then the

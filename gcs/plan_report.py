@@ -106,10 +106,17 @@ def _summary(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s: floa
                        "air_density_kg_m3": plan.controller_air_density_kg_m3(plan.wind),
                        "wind_estimate_rate_1_s": plan.controller.wind_estimate_rate_1_s,
                        "accelerometer": plan.controller_accelerometer(plan.wind),
-                       "latency_s": plan.controller.latency_s},
+                       "latency_s": plan.controller.latency_s,
+                       "sampled_loop": _sampled_loop(plan, design)},
         "flight": flight.summary() if flight is not None else {"flown": False},
         "ok": flight is not None,
     }
+
+
+def _sampled_loop(plan: Plan, design: Design) -> dict:
+    """(77)'s loops sampled at the control rate: the largest |z| of their poles (< 1: they settle)."""
+    s = design.sampled_loop(plan.controller.rate_hz)
+    return {"max_abs_z": s.radius, "topology": s.topology, "eigenvalue": [s.eigenvalue.real, s.eigenvalue.imag]}
 
 
 def _drag_term(plan: Plan) -> str:
@@ -149,6 +156,8 @@ def _print_design(plan: Plan, design: Design, demand: ActuatorDemand, horizon_s:
                                        f"({plan.controller.latency_s * 1000:g} ms), in whole control periods"))
     for key, value in design.stability_margins().items():
         facts.add_row(key.replace("_", " "), f"{value:.4g} (< 0: Hurwitz, (77))")
+    sampled = _sampled_loop(plan, design)
+    facts.add_row("sampled loop", f"{sampled['max_abs_z']:.4g} (< 1: stable), largest |z| at {plan.controller.rate_hz:g} Hz")
     console.print(Panel(facts, title=f"plan {escape(plan.source)}", expand=False))
 
     topologies = Table(title="Assumption 1: eigenvalues of L+G per topology")

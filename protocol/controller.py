@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg
 
-from .design import Design, accel_model
+from .design import Design, accel_model, zoh
 from . import kernels
 from .model import actuator_inverse
 from .rfl import MAX_PITCH_RAD, RFL
@@ -61,16 +61,6 @@ if TYPE_CHECKING:
 WIND_ESTIMATE_FLOOR_M_S = 1.0
 """Airspeed [m/s] below which the wind estimate's step is taken as at this speed: the drag's
 sensitivity to the wind, 2 k |r| / m, vanishes with the airspeed |r|."""
-
-
-def _zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
-    """x(T) = Phi x(0) + Gamma u for x' = A x + B u with u held."""
-    n, m = B.shape
-    M = np.zeros((n + m, n + m))
-    M[:n, :n] = A * T
-    M[:n, n:] = B * T
-    E = scipy.linalg.expm(M)
-    return E[:n, :n], E[:n, n:]
 
 
 def _zoh_foh(A: np.ndarray, B_hold: np.ndarray, B_ramp: np.ndarray, T: float):
@@ -183,7 +173,7 @@ class FormationController:
             A, B, _ = accel_model(A, B, C)
         self.n_z = A.shape[0]
         # contiguous copies: the compiled loops index them row by row
-        Phi1, G1 = map(np.ascontiguousarray, _zoh(A, B, self.dt_s))
+        Phi1, G1 = map(np.ascontiguousarray, zoh(A, B, self.dt_s))
         self._Phi1, self._G1 = Phi1, G1
         # Prediction over the pipe: z(t + D dt) = Phi1^D z + sum_j Phi1^(D-1-j) G1 v_j.
         self._pred_Phi = np.linalg.matrix_power(Phi1, self.lead_ticks)
@@ -205,7 +195,7 @@ class FormationController:
             self._Phi_m[measured][:m, :m], self._Gv_m[measured][:m] = Phi, Gv
             self._Gy0_m[measured][:m, idx], self._Gy1_m[measured][:m, idx] = Gy0, Gy1
         self._B_accel = np.ascontiguousarray(design.B_r[0:3])
-        self._half_Phi, self._half_G = map(np.ascontiguousarray, _zoh(A, B, 0.5 * self.dt_s))
+        self._half_Phi, self._half_G = map(np.ascontiguousarray, zoh(A, B, 0.5 * self.dt_s))
         self._Einv = np.linalg.inv(design.B_r[0:6]) if design.estimates_disturbance else None
         self._Einv_or_zero = self._Einv if self._Einv is not None else np.zeros((6, 6))
         self._adapt_k = self.adaptation_rate * self.dt_s if self._Einv is not None else 0.0

@@ -100,6 +100,28 @@ class DesignWeights:
 
 
 @dataclass(frozen=True)
+class SampledLoop:
+    """The worst block of the formation's feedback sampled at the control rate (``Design.sampled_loop``)."""
+
+    radius: float
+    """The largest |z| of its poles: below 1, the loop settles; from 1, it diverges."""
+    topology: str
+    eigenvalue: complex
+    """The eigenvalue of L + G of ``topology`` whose block it is."""
+    rate_hz: float
+
+    def problem(self) -> str | None:
+        """Why the formation would diverge at this rate (one sentence), or None."""
+        if self.radius < 1.0:
+            return None
+        lam = f"{self.eigenvalue.real:.3g}" if self.eigenvalue.imag == 0 else f"{self.eigenvalue:.3g}"
+        return (f"the feedback is too fast for the control rate: sampled at {self.rate_hz:g} Hz ([controller] rate_hz), "
+                f"the loop of topology {self.topology} (eigenvalue {lam} of L+G) has a pole at |z| = {self.radius:.3g}, "
+                "outside the unit circle, and the formation would diverge; raise rate_hz, or lower [design] Q_diag "
+                "or raise R_diag")
+
+
+@dataclass(frozen=True)
 class Design:
     """Everything Algorithm 1 computes once for a swarm."""
 
@@ -205,6 +227,22 @@ class Design:
                 out[f"{name}_observer_max_real_part"] = float(np.linalg.eigvals(A - self.c * F @ C).real.max())
         return out
 
+    def sampled_loop(self, rate_hz: float) -> SampledLoop:
+        """The feedback of (72) as the controllers run it, once a period at ``rate_hz``: the reference
+        model (58) with v held over the period, v_k = -c lambda_i K x_k, for every eigenvalue lambda_i
+        of every topology (the diagonal blocks of (88), sampled). Where (77) asks the continuous
+        loop's poles to lie left of the imaginary axis, the sampled loop's must lie inside the unit
+        circle: a gain fast enough for (77) can be too fast for the rate. Returns the worst block."""
+        Phi, Gamma = zoh(self.A_r, self.B_r, 1.0 / rate_hz)
+        GK = Gamma @ self.K
+        worst = SampledLoop(0.0, "", 0j, rate_hz)
+        for name, lams in zip(self.topology_names, self.eigenvalues):
+            for lam in np.unique(np.round(np.asarray(lams, dtype=complex), 12)):
+                radius = float(np.abs(np.linalg.eigvals(Phi - self.c * lam * GK)).max())
+                if radius > worst.radius:
+                    worst = SampledLoop(radius, name, complex(lam), rate_hz)
+        return worst
+
     def gamma(self, h: np.ndarray, h_dot: np.ndarray) -> np.ndarray:
         """(78): gamma_i = B_tilde (h_dot_i - A_r h_i), for h, h_dot (..., 12)."""
         h, h_dot = np.broadcast_arrays(np.asarray(h, dtype=float), np.asarray(h_dot, dtype=float))
@@ -297,6 +335,16 @@ def _solved(kind: str, *matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         payload = gain.astype("<f8").tobytes() + P.astype("<f8").tobytes()
         store[1](key, hashlib.sha256(payload).digest() + payload)
     return gain, P
+
+
+def zoh(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """x(T) = Phi x(0) + Gamma u for x' = A x + B u with u held."""
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = A * T
+    M[:n, n:] = B * T
+    E = scipy.linalg.expm(M)
+    return E[:n, :n], E[:n, n:]
 
 
 def design(rfl: RFL, schedule: Schedule, weights: DesignWeights) -> Design:

@@ -263,10 +263,14 @@ class Plan:
 
     def check_formation(self, horizon_s: float | None = None, step_s: float = 0.1) -> Design:
         """Algorithm 1's checks: (76) for every drone over the horizon, Assumption 1 for every
-        topology, (91) and the Hurwitz conditions (77); then that the formation asks no more of
-        the airframe than its motors and servos give (``actuator_demand``). Returns the design."""
+        topology, (91) and the Hurwitz conditions (77), and (77)'s loops sampled at the control rate
+        (``Design.sampled_loop``); then that the formation asks no more of the airframe than its
+        motors and servos give (``actuator_demand``). Returns the design."""
         horizon_s = self.duration_s if horizon_s is None else horizon_s
         d = self.design
+        problem = d.sampled_loop(self.controller.rate_hz).problem()
+        if problem is not None:
+            raise PlanError(f"{self.source}: {problem}")
         times = np.arange(0.0, horizon_s + 1e-9, step_s)
         try:
             check_feasibility(d.A_r, d.B_bar, self.formation, times, source=f"{self.source}: formation")

@@ -7,7 +7,8 @@ from scipy.integrate import solve_ivp
 
 from triswarm.protocol import model
 from triswarm.protocol.agent import protocol_input
-from triswarm.protocol.controller import FormationController, _zoh, _zoh_foh
+from triswarm.protocol.controller import FormationController, _zoh_foh
+from triswarm.protocol.design import zoh
 from triswarm.sitl.physics import Plant
 
 
@@ -106,11 +107,11 @@ class NumpyController:
         A, B, C, F = design.observer_model()
         T = 1.0 / rate_hz
         self.Phi, self.Gv, self.Gy0, self.Gy1 = _zoh_foh(A - design.c * F @ C, B, design.c * F, T)
-        Phi1, G1 = _zoh(A, B, T)
+        Phi1, G1 = zoh(A, B, T)
         self.lead = int(round(design.rfl.airframe.servo_delay_s / T))
         self.pred_Phi = np.linalg.matrix_power(Phi1, self.lead)
         self.pred_G = [np.linalg.matrix_power(Phi1, self.lead - 1 - j) @ G1 for j in range(self.lead)]
-        self.half_Phi, self.half_G = _zoh(A, B, 0.5 * T)
+        self.half_Phi, self.half_G = zoh(A, B, 0.5 * T)
         self.E_inv = np.linalg.inv(design.B_r[0:6])
         self.rfl, self.n, self.adapt_k = design.rfl, n, adaptation_rate_1_s * T
         self.air = air_density_kg_m3

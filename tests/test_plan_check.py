@@ -109,8 +109,10 @@ OFFSETS = ", ".join(f"[{'1.0' if i == 2 else '0.0'}, 0, 0, 0, 0, 0, 0, 0, 0, {i}
     ([("[leader]", "[airframe]\nservo_limit_rad = 1.55\n\n[leader]")],
      "formation cannot be flown: drone 1 needs a rotor tilted 90.2 deg, past the servo range "
      "(+-88.8 deg)", "drone 1"),
+    ([("rate_hz = 200.0", "rate_hz = 50.0")],
+     "the feedback is too fast for the control rate: sampled at 50 Hz ([controller] rate_hz)", None),
 ], ids=["missing-field", "ragged-array", "short-array", "unknown-type", "negative-period", "no-spanning-tree",
-        "infeasible-76", "keyframes-out-of-order", "servo-range"])
+        "infeasible-76", "keyframes-out-of-order", "servo-range", "too-fast-for-the-rate"])
 def test_bad_plan_ends_with_one_sentence_naming_file_drone_and_field(tmp_path, replace, field, drone):
     path = paper_plan_variant(tmp_path, replace)
     r = plan_check(path)
