@@ -38,12 +38,13 @@ def check(
     """Check a plan as Algorithm 1 does, certify its switching, and fly it in simulation.
 
     The checks: (76) per drone, Assumption 1 per topology, (91) and the Hurwitz conditions (77),
-    the same loops sampled at the control rate (every pole within the unit circle), the rotor speeds and servo angles that flying the formation exactly needs, the margins that
-    leaves to the motor limit and the servo range in the plan's design air ([wind]: its steady wind,
-    its gusts at their peak, 3 sigma of its turbulence from the worst direction), the certificate of
-    the switched formation-error system, and the minimum separation along the reference. Then the
-    plan is flown in the in-process simulation (nominal plant, from the ground, in the plan's
-    [wind]) and every drone must stay within the bounds over the settled window. "plan OK" means
+    the same loops sampled at the control rate (every pole within the unit circle), the rotor
+    speeds and servo angles that flying the formation exactly needs, the margins that leaves to the
+    motor limit and the servo range in the plan's design air ([wind]: its steady wind, its gusts at
+    their peak, 3 sigma of its turbulence from the worst direction), the certificate of the switched
+    formation-error system, and the minimum separation along the reference. Then the plan is flown
+    in the in-process simulation (nominal plant, from the ground, in the plan's [wind]) and every
+    drone must stay within the bounds over the settled window. "plan OK" means
     all of that passed. A refused plan ends with one sentence and exit status 2."""
     with user_errors():
         require_positive(horizon_s=horizon_s, min_separation_m=min_separation_m, position_bound_m=position_bound_m,
