@@ -173,6 +173,9 @@ class Bus:
         statuses do (``STATUS_ALIVE_S``): Zenoh has been seen to lose a token's declaration for a
         whole flight while the agent flew and said so."""
         self._tokens: set[int] = set()
+        self.token_at: dict[int, float] = {}
+        """When [s, monotonic] each agent's liveliness token last came: a link to it was (re)opened,
+        and what it sent while there was none is lost."""
         self._said_at: dict[int, float] = {}  # agents alive by their statuses: the newest's [s, monotonic]
         self._said_checked = 0.0
         self.statuses: dict[int, tuple[AgentStatus, object]] = {}
@@ -363,9 +366,9 @@ class Bus:
     def drain(self) -> None:
         """Take in liveliness and status changes (and any estimate not yet read)."""
         self.take_estimates()
-        while (sample := self._alive_sub.try_recv()) is not None:
-            self._alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
         now = time.monotonic()
+        while (sample := self._alive_sub.try_recv()) is not None:
+            self._alive(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, now)
         if self._status_inbox:
             for key, data in self._status_inbox.take():
                 self._status(key, data, now)
@@ -445,7 +448,8 @@ class Bus:
             self.statuses.pop(agent, None)
             self.changes += 1
 
-    def _alive(self, key: str, present: bool) -> None:
+    def _alive(self, key: str, present: bool, t_rx_s: float) -> None:
+        """A liveliness token came (``present``) or went, taken at ``t_rx_s`` [s, monotonic]."""
         agent = agent_of_key(key)
         if agent is None or not 1 <= agent <= self.n_agents:
             self.counters["drop_bad_liveliness"] += 1
@@ -453,6 +457,7 @@ class Bus:
         if present:
             self.alive.add(agent)
             self._tokens.add(agent)
+            self.token_at[agent] = t_rx_s
             self._said_at.pop(agent, None)
         elif agent not in self.members:
             self.alive.discard(agent)

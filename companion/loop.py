@@ -344,8 +344,8 @@ class ControlLoop:
         """Lockstep, still waiting: drop the neighbours that died or stopped flying (their liveliness
         and status tell), and the live ones from which no new estimate has come for NB_WATCHDOG_S of
         wall time in which this process ran (hung), saying so. The silence is a neighbour's, from its
-        newest estimate on (from the wait's start for one never heard), not each tick's: a hung
-        neighbour costs one wait, not one per tick. True when the rest are in."""
+        newest estimate on (from the wait's start for one never heard, or from its link's return),
+        not each tick's: a hung neighbour costs one wait, not one per tick. True when the rest are in."""
         a = t.agent
         f = a.flight
         t.expected = [j for j in t.expected if f.usable(j, check_fresh=False) and j not in f.silent]
@@ -361,9 +361,13 @@ class ControlLoop:
 
     @staticmethod
     def _heard_at(a, j: int, since_wall: float, now: float) -> float:
-        """When [s, time.monotonic] neighbour j's newest estimate came (the wait's start if never)."""
+        """When [s, time.monotonic] neighbour j's newest estimate came (the wait's start if never),
+        or its liveliness token came again since: a link to it opened, and it may not yet have had
+        the occasion to send again what was lost while there was none (a stall of either process
+        past the Zenoh lease closes their links; opening them again takes Zenoh's retry period)."""
         received = a.bus.estimates[j].received_at  # [Unix s]
-        return since_wall if not math.isfinite(received) else now - (time.time() - received)
+        heard = since_wall if not math.isfinite(received) else now - (time.time() - received)
+        return max(heard, a.bus.token_at.get(j, -math.inf))
 
     # -- 4. path, 5. protocol and command -------------------------------------------------------------
 

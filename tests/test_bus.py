@@ -293,7 +293,7 @@ def test_an_agent_whose_token_never_came_is_alive_while_it_speaks():
     changes = bus.changes
     bus._forget_silent(11.0 + STATUS_ALIVE_S + 0.1)
     assert bus.alive == set() and bus.status_of(2, (5,)) is None and bus.changes > changes
-    bus._alive(alive_key("s", 3), True)
-    bus._alive(alive_key("s", 3), False)
+    bus._alive(alive_key("s", 3), True, 19.0)
+    bus._alive(alive_key("s", 3), False, 19.5)
     status(3, 20.0)  # (late, after its token went)
     assert 3 not in bus.alive

@@ -270,8 +270,10 @@ def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
     """Lockstep: a tick waits for neighbour 1's estimate; the whole machine stops for 6.5 s (longer
     than NB_WATCHDOG_S); at the wake the loop's first look at who is alive must see the stall and
     count the neighbour's silence from the wake, not from its last estimate (which came before the
-    stall): a neighbour whose state came during the stall is not hung. A neighbour that then stays
-    silent for NB_WATCHDOG_S of looks is still counted absent."""
+    stall): a neighbour whose state came during the stall is not hung. Nor is one whose link came
+    back after the wake (its liveliness token came again: the stall closed the Zenoh links, and what
+    it sent meanwhile was lost) until it has been silent for NB_WATCHDOG_S since. A neighbour that
+    then stays silent for NB_WATCHDOG_S of looks is still counted absent."""
     import asyncio
     from types import SimpleNamespace
 
@@ -293,7 +295,7 @@ def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
         topology_at = staticmethod(lambda t_p: SimpleNamespace(name="chain"))
         estimates_in = staticmethod(lambda agents, t_p: not agents)
         flight = SimpleNamespace(usable=lambda j, check_fresh=True: True, silent={})
-        bus = SimpleNamespace(estimates={1: SimpleNamespace(received_at=clock["unix"] - 0.005)})
+        bus = SimpleNamespace(estimates={1: SimpleNamespace(received_at=clock["unix"] - 0.005)}, token_at={})
         fc = SimpleNamespace(settle=lambda woke: None)
         log = SimpleNamespace(warning=warnings.append)
 
@@ -308,9 +310,17 @@ def test_a_stall_that_began_in_a_wait_is_not_a_neighbours_silence(monkeypatch):
         advance(6.5)  # the machine stopped
         ctl._timeout()
         assert not agent.flight.silent and not warnings, warnings
-        for _ in range(round((NB_WATCHDOG_S + 0.2) / LOCKSTEP_RECHECK_S)):  # then regular looks, no estimate
-            advance(LOCKSTEP_RECHECK_S)
-            ctl._timeout()
+
+        def look(for_s: float) -> None:  # regular looks, no estimate
+            for _ in range(round(for_s / LOCKSTEP_RECHECK_S)):
+                advance(LOCKSTEP_RECHECK_S)
+                ctl._timeout()
+
+        look(0.6 * NB_WATCHDOG_S)
+        agent.bus.token_at[1] = clock["mono"]  # its link is back
+        look(0.9 * NB_WATCHDOG_S)  # (past NB_WATCHDOG_S since the wake)
+        assert not agent.flight.silent and not warnings, warnings
+        look(0.1 * NB_WATCHDOG_S + 0.2)
         assert 1 in agent.flight.silent and len(warnings) == 1, (agent.flight.silent, warnings)
         ctl.close()
     finally:
