@@ -53,7 +53,8 @@ def flight_problem(plan: Plan, result: SimResult, perf: metrics.Performance, win
     """One sentence on what went wrong in the flight, or None."""
     af = plan.airframe
     late = f", {plan.controller.latency_s * 1000:g} ms latency" if plan.controller.latency_s else ""
-    how = (f"flown in simulation (the plan's airframe: {af.servo_delay_s * 1000:g} ms servo delay{late}, "
+    speed = f", servos of {math.degrees(af.servo_rate_rad_s):.0f} deg/s" if af.servo_rate_rad_s else ""
+    how = (f"flown in simulation (the plan's airframe: {af.servo_delay_s * 1000:g} ms servo delay{speed}{late}, "
            f"{af.max_rotor_speed_rad_s / RPM_TO_RAD_S:.0f} RPM motor limit; from the ground)")
     if result.diverged_at_s is not None:
         return (f"{how}, the formation diverged: drone {result.diverged_drone}'s state left the valid range at "

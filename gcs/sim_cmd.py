@@ -43,6 +43,10 @@ def sim(
                                                        "to keep neighbours apart, see docs/formations.md).")] = None,
     servo_delay_s: Annotated[Optional[float], typer.Option("--servo-delay-s", help="Simulated servo delay [s] (default: the plan airframe's, 0.01).")] = None,
     max_rpm: Annotated[Optional[float], typer.Option(help="Simulated motor limit [RPM] (default: the plan airframe's).")] = None,
+    servo_rate_deg_s: Annotated[Optional[float], typer.Option(
+        "--servo-rate-deg-s", help="Simulated servo speed [deg/s]: a servo turns towards its delayed command at most "
+                                   "this fast (600 is 0.1 s per 60 deg; 0: at once; default: the plan airframe's, "
+                                   "at once).")] = None,
     latency_s: Annotated[Optional[float], typer.Option(
         "--latency-s", help="Simulated latency [s]: how long after a measurement's stamp the command that answers "
                             "it reaches the plant (default: the plan's [controller] latency_s, which the "
@@ -76,6 +80,7 @@ def sim(
         finite_option("duration-s", duration_s, positive=True)
         finite_option("servo-delay-s", servo_delay_s, non_negative=True)
         finite_option("max-rpm", max_rpm, positive=True)
+        finite_option("servo-rate-deg-s", servo_rate_deg_s, non_negative=True)
         finite_option("latency-s", latency_s, non_negative=True)
         from triswarm.protocol.plan import MAX_LATENCY_S
 
@@ -111,8 +116,8 @@ def sim(
         from . import plots, report
 
         config = SimConfig(duration_s=duration, physics_hz=physics_hz, log_hz=log_hz, servo_delay_s=servo_delay_s,
-                           max_rpm=max_rpm, noise=SensorNoise() if noise else None, mismatch_pct=mismatch, seed=seed,
-                           wind=wind, estimator=est, latency_s=latency_s)
+                           max_rpm=max_rpm, servo_rate_deg_s=servo_rate_deg_s, noise=SensorNoise() if noise else None,
+                           mismatch_pct=mismatch, seed=seed, wind=wind, estimator=est, latency_s=latency_s)
         design = plan.check_formation(horizon_s=duration)
         problems = plan.safety_problems(horizon_s=duration)
         if problems and not force:
@@ -138,7 +143,8 @@ def sim(
                    max_rotor_speed_rpm=float(result.omega_rad_s[:, i].max() * 60 / (2 * math.pi)))
     run = {
         "duration_s": duration, "physics_hz": physics_hz, "control_hz": plan.controller.rate_hz, "log_hz": log_hz,
-        "servo_delay_s": result.plant_airframe.servo_delay_s, "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),
+        "servo_delay_s": result.plant_airframe.servo_delay_s,
+        "servo_rate_deg_s": math.degrees(result.plant_airframe.servo_rate_rad_s), "max_rpm": result.plant_airframe.max_rotor_speed_rad_s * 60 / (2 * math.pi),
         "controller_servo_delay_s": plan.airframe.servo_delay_s, "latency_s": command_latency_s(plan, config),
         "controller_latency_s": plan.controller.latency_s,
         "noise": None if config.noise is None else {"position_m": config.noise.position_m, "attitude_rad": config.noise.attitude_rad},

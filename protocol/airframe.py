@@ -56,6 +56,10 @@ class Airframe:
     The case study needs more than about +-95 deg (errata); 120 deg leaves a margin."""
     servo_delay_s: float = 0.01
     """Transport delay from a servo command to the servo angle (0.01 s in the paper)."""
+    servo_rate_rad_s: float = 0.0
+    """How fast a servo turns [rad/s] (its datasheet's speed: 0.1 s per 60 deg is 10.5 rad/s); it
+    moves towards the delayed command at that rate, through the middle of its range, never across
+    its ends. 0: at once, the paper's model (the transport delay alone)."""
     drag_coefficient: float = 1.0
     """Drag coefficient C_d of the body (dimensionless), on frontal_area_m2: the body's drag is
     1/2 rho_air C_d A |v_rel| v_rel against its velocity relative to the air. Not in the paper: a
@@ -73,8 +77,8 @@ class Airframe:
             value = getattr(self, field.name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ParameterError(f"airframe parameter {field.name} must be a finite number, got {value!r}")
-            allowed_zero = field.name in ("Iyz_kg_m2", "servo_delay_s", "k_d_N_m_s2", "drag_coefficient",
-                                           "frontal_area_m2")
+            allowed_zero = field.name in ("Iyz_kg_m2", "servo_delay_s", "servo_rate_rad_s", "k_d_N_m_s2",
+                                           "drag_coefficient", "frontal_area_m2")
             if field.name == "Iyz_kg_m2":
                 continue
             if value < 0 or (value == 0 and not allowed_zero):

@@ -32,6 +32,10 @@ What this adds to the paper's law, and why (see docs/control-design.md):
 * Servo range. A drone with a rotor held at the servo range's edge commits the v its rotors then
   deliver (``kernels.input_shortfall_v``), so the observer's disturbance estimate does not wind up
   on the actuators' shortfall; with no rotor at the edge, v itself, to the bit.
+* Servo speed. Where the airframe states how fast a servo turns, no servo command is further from
+  the last than it turns in a period, and the rotors' forces are the best within that reach
+  (``kernels.allocate_within_reach``), so the servos follow the commands and the predictor stays
+  exact.
 * Thrust effectiveness. A scalar kappa ~ (k_f/m)_plant / (k_f/m)_model, adapted from the
   translational disturbance along the specific thrust asked before the disturbance is cancelled
   (the idea of PX4's hover-thrust estimator) and divided out of u, so a heavier drone or a weaker
@@ -207,6 +211,12 @@ class FormationController:
         self.wind_estimate_e_m_s = np.zeros((self.n, 3))
         """The wind each agent's controller has estimated, earth frame [m/s] (N, 3): the RFL cancels
         the drag of the drone's velocity relative to it."""
+        step = self.rfl.airframe.servo_rate_rad_s * self.dt_s
+        self._servo_step_rad = step if step < 0.5 * np.pi else 0.0
+        """How far a servo turns in one period [rad]; 0: at once (also a servo that turns a quarter of a
+        turn or more in a period: its reach is then no convex cone, and no limit)."""
+        self.servo_command_rad: np.ndarray | None = None
+        """The servo angles each agent last commanded [rad] (N, 3): its servos turn from there."""
         self.z: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self.thrust_scale = np.ones(self.n)
@@ -226,6 +236,7 @@ class FormationController:
             self._v_applied = np.zeros((self.n, 6))
             self._z_pred = np.zeros((self.n, self.n_z))
             self.initial_actuation = Actuation(np.zeros((self.n, 3)), np.zeros((self.n, 3)))
+            self.servo_command_rad = np.zeros((self.n, 3))
         rows = self._rows(rows)
         x = np.asarray(x, dtype=float).reshape(rows.size, 12)
         self.z[rows] = 0.0
@@ -238,6 +249,7 @@ class FormationController:
         omega, alpha = actuator_inverse(hold)
         self.initial_actuation.omega_rad_s[rows] = omega
         self.initial_actuation.alpha_rad[rows] = alpha
+        self.servo_command_rad[rows] = alpha
         self._v_pipe[:, rows] = 0.0
         self._motor_pipe[:, rows] = omega
         self._v_applied[rows] = 0.0
@@ -308,7 +320,7 @@ class FormationController:
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, self.drag_1_m,
                         MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1],
                         self.wind_estimate_e_m_s, self._wind_gain, WIND_ESTIMATE_FLOOR_M_S, r.airframe.servo_limit_rad,
-                        self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now,
+                        self._servo_step_rad, self.servo_command_rad, self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now,
                         self._G, self._M0_inv)
         return Actuation(omega_now, alpha)
 

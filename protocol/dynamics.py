@@ -28,19 +28,20 @@ from .airframe import Airframe
 from .jit import njit
 
 # Entries of the parameter vector (``airframe_vector``).
-MASS, GRAVITY, ARM, IXX, IYY, IZZ, IYZ, KF, KD, MAX_OMEGA, SERVO_LIMIT, DRAG = range(12)
-PARAM_DIM = 12
+MASS, GRAVITY, ARM, IXX, IYY, IZZ, IYZ, KF, KD, MAX_OMEGA, SERVO_LIMIT, DRAG, SERVO_RATE = range(13)
+PARAM_DIM = 13
 
 _S3 = math.sqrt(3.0) / 2.0
 
 
 def airframe_vector(af: Airframe, air_density_kg_m3: float = 0.0) -> np.ndarray:
-    """The numbers the compiled dynamics need, in the order of the constants above. The last is
-    the drag factor 1/2 rho_air C_d A [kg/m]: air density 0 (the default) is the paper's drag-free
+    """The numbers the compiled dynamics need, in the order of the constants above. DRAG is the
+    drag factor 1/2 rho_air C_d A [kg/m]: air density 0 (the default) is the paper's drag-free
     model."""
     drag = af.drag_factor_kg_m(air_density_kg_m3)
     return np.array([af.mass_kg, af.gravity_m_s2, af.arm_length_m, af.Ixx_kg_m2, af.Iyy_kg_m2, af.Izz_kg_m2,
-                     af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad, drag])
+                     af.Iyz_kg_m2, af.k_f_N_s2, af.k_d_N_m_s2, af.max_rotor_speed_rad_s, af.servo_limit_rad, drag,
+                     af.servo_rate_rad_s])
 
 
 @njit(inline="always")

@@ -265,6 +265,53 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 
 
 @njit()
+def _nnls(A, b, x):
+    """x >= 0 (written) minimising |A x - b|: Lawson and Hanson's active-set method, for the small
+    problems of ``allocate_within_reach`` (6 rows, 6 columns). Returns the squared residual."""
+    m, n = A.shape
+    x[:] = 0.0
+    passive = np.zeros(n, np.bool_)
+    r = b.copy()
+    grad = A.T @ r
+    tol = 1e-12 * (np.abs(grad).max() + 1e-300)
+    s = np.zeros(n)
+    for _ in range(3 * n):
+        j_max, g_max = -1, tol
+        for j in range(n):
+            if not passive[j] and grad[j] > g_max:
+                j_max, g_max = j, grad[j]
+        if j_max < 0:
+            break
+        passive[j_max] = True
+        for _inner in range(3 * n):
+            idx = np.nonzero(passive)[0]
+            s[:] = 0.0
+            sol = np.linalg.lstsq(A[:, idx], b)[0]
+            for q in range(idx.size):
+                s[idx[q]] = sol[q]
+            step = 1.0
+            for q in range(idx.size):
+                c = idx[q]
+                if s[c] <= 0.0:
+                    t = x[c] / (x[c] - s[c]) if x[c] - s[c] > 0.0 else 0.0
+                    step = min(step, t)
+            if step >= 1.0:
+                x[:] = s
+                break
+            for c in range(n):
+                x[c] += step * (s[c] - x[c])
+                if passive[c] and x[c] <= 1e-15 * (abs(s[c]) + 1.0):
+                    passive[c] = False
+                    x[c] = 0.0
+            if not passive.any():
+                break
+        r = b - A @ x
+        grad = A.T @ r
+    r = b - A @ x
+    return float(r @ r)
+
+
+@njit()
 def allocate_within_range(rho, servo_limit, G, edge):
     """Rotor inputs rho (6: omega_j^2 sin alpha_j, then omega_j^2 cos alpha_j; updated in place) within
     the servo range |alpha_j| <= servo_limit, for the body accelerations w = G rho they were computed
@@ -332,9 +379,59 @@ def allocate_within_range(rho, servo_limit, G, edge):
 
 
 @njit()
+def allocate_within_reach(rho, servo_limit, lo, hi, G, angle):
+    """``allocate_within_range`` for servos of finite speed: each rotor's angle within [lo[j], hi[j]],
+    the servo range less what its servo cannot turn in one period from its last command (a window
+    of less than 180 degrees). While every rotor is within its window nothing changes (returns
+    False). Otherwise each rotor's force is a non-negative combination of its window's two edge
+    directions (a convex cone), and the six coefficients are the non-negative least squares of the
+    accelerations w = G rho, the angular rows weighted ``TORQUE_PRIORITY`` times: the best the
+    rotors can give within reach, the attitude first. angle[j] is then the rotor's angle: its
+    force's, or for a rotor given no force, the nearest within reach to the one it was asked (to the
+    nearer end of the range for one asked beyond it), so that it turns back into play. Inputs that
+    are not finite are left as they are."""
+    beyond = False
+    for j in range(3):
+        a = math.atan2(rho[j], rho[j + 3])
+        angle[j] = a
+        if a < lo[j] or a > hi[j]:
+            beyond = True
+    if not beyond:
+        return False
+    w = np.zeros(6)
+    _matvec_add(G, rho, w)
+    for r in range(6):
+        if not math.isfinite(w[r]):
+            return False
+    A = np.zeros((6, 6))
+    for j in range(3):
+        for q in range(2):
+            t = lo[j] if q == 0 else hi[j]
+            sa, ca = math.sin(t), math.cos(t)
+            for r in range(6):
+                A[r, 2 * j + q] = (G[r, j] * sa + G[r, j + 3] * ca) * (TORQUE_PRIORITY if r >= 3 else 1.0)
+    b = w.copy()
+    for r in range(3, 6):
+        b[r] *= TORQUE_PRIORITY
+    x = np.zeros(6)
+    _nnls(A, b, x)
+    for j in range(3):
+        s = x[2 * j] * math.sin(lo[j]) + x[2 * j + 1] * math.sin(hi[j])
+        c = x[2 * j] * math.cos(lo[j]) + x[2 * j + 1] * math.cos(hi[j])
+        rho[j], rho[j + 3] = s, c
+        if x[2 * j] + x[2 * j + 1] > 0.0:
+            angle[j] = min(max(math.atan2(s, c), lo[j]), hi[j])
+        else:
+            a = angle[j]
+            toward = a if abs(a) <= servo_limit else math.copysign(servo_limit, a)
+            angle[j] = min(max(toward, lo[j]), hi[j])
+    return True
+
+
+@njit()
 def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, Ii, G_inv, g, drag, max_pitch,
-            kappa, adapt_k, k_lo, k_hi, wind, wind_gain, wind_floor, servo_limit, v_pipe, motor_pipe, v_applied,
-            v_out, omega, alpha, omega_now, G, M0_inv):
+            kappa, adapt_k, k_lo, k_hi, wind, wind_gain, wind_floor, servo_limit, servo_step, servo_cmd, v_pipe,
+            motor_pipe, v_applied, v_out, omega, alpha, omega_now, G, M0_inv):
     """For each agent row in ``rows`` (v_in[k] is row rows[k]'s): cancel the estimated disturbance,
     predict half a period on, RFL (with the drag in the estimated wind, drag = k / m [1/m], 0 in no
     air), adapt and apply the thrust scale kappa, actuator inverse within the servo range, and
@@ -345,9 +442,11 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     disturbance is the allocation's shortfall, not the wind: no wind-up). z is the observer state: with a disturbance estimate columns 12-14
     are the translational disturbance.
 
-    A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit) is held at
-    the range's edge and the three rotors keep the angular accelerations asked, giving way in force
-    (``allocate_within_range``). The v committed for such a row is then the one the rotors deliver
+    A rotor whose force (u_j, u_j+3) lies beyond the servo range (|alpha| > servo_limit), or beyond
+    where its servo turns in one period (servo_step [rad] from its last command servo_cmd[i, j];
+    servo_step 0: at once), leaves the three rotors to keep the angular accelerations asked, giving
+    way in force (``allocate_within_range``; ``allocate_within_reach`` for servos of finite speed);
+    servo_cmd is updated to the angles commanded. The v committed for such a row is then the one the rotors deliver
     (``input_shortfall_v``: G and M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
     its disturbance estimate does not take up what the actuators could not deliver (no wind-up)."""
     nz = z_pred.shape[1]
@@ -358,6 +457,8 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     dv = np.empty(6)
     rho = np.empty(6)
     edge = np.zeros(3)
+    lo = np.full(3, -servo_limit)
+    hi = np.full(3, servo_limit)
     for k in range(rows.shape[0]):
         i = rows[k]
         v_out[k, :] = v_in[k, :]
@@ -381,10 +482,20 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
                 kappa[i] = min(max(kappa[i] * (1.0 + step), k_lo), k_hi)
         for q in range(6):
             rho[q] = u[q] / kappa[i]
-        saturated = allocate_within_range(rho, servo_limit, G, edge)
+        if servo_step > 0.0:
+            for j in range(3):
+                lo[j] = max(servo_cmd[i, j] - servo_step, -servo_limit)
+                hi[j] = min(servo_cmd[i, j] + servo_step, servo_limit)
+            saturated = allocate_within_reach(rho, servo_limit, lo, hi, G, edge)
+            for j in range(3):
+                alpha[k, j] = edge[j] if saturated else math.atan2(rho[j], rho[j + 3])
+        else:
+            saturated = allocate_within_range(rho, servo_limit, G, edge)
+            for j in range(3):
+                alpha[k, j] = edge[j] if edge[j] != 0.0 else math.atan2(rho[j], rho[j + 3])
         for j in range(3):
             omega[k, j] = math.sqrt(math.hypot(rho[j], rho[j + 3]))
-            alpha[k, j] = edge[j] if edge[j] != 0.0 else math.atan2(rho[j], rho[j + 3])
+            servo_cmd[i, j] = alpha[k, j]
         if saturated:  # commit the v the rotors deliver: the observer's disturbance must not take up the shortfall
             for q in range(6):
                 du[q] = kappa[i] * rho[q] - u[q]

@@ -26,7 +26,7 @@ class ParamSpec:
 READ_ONLY_PARAMS = frozenset({"SIM_LOCKSTEP"})
 """Set by the simulator at start, never over MAVLink."""
 AIRFRAME_PARAMS = frozenset({"MASS_KG", "IXX_KGM2", "IYY_KGM2", "IZZ_KGM2", "IYZ_KGM2", "KF", "KD", "ARM_LEN_M",
-                             "SERVO_DELAY_S", "MOT_MAX_RPM", "SERVO_LIM_DEG"})
+                             "SERVO_DELAY_S", "SERVO_RATE_DPS", "MOT_MAX_RPM", "SERVO_LIM_DEG"})
 """The parameters that change the plant (``FlightController.airframe``)."""
 
 
@@ -42,6 +42,7 @@ def param_specs(af: Airframe, profile: Profile = TRISWARM) -> list[ParamSpec]:
         ParamSpec("KD", af.k_d_N_m_s2, 0.0, 1e-3, "drag-torque coefficient [N m s^2/rad^2]"),
         ParamSpec("ARM_LEN_M", af.arm_length_m, 0.02, 5.0, "arm length [m]"),
         ParamSpec("SERVO_DELAY_S", af.servo_delay_s, 0.0, 0.2, "servo transport delay [s]"),
+        ParamSpec("SERVO_RATE_DPS", math.degrees(af.servo_rate_rad_s), 0.0, 100000.0, "servo speed [deg/s]; 0: at once"),
         ParamSpec("MOT_MAX_RPM", af.max_rotor_speed_rad_s / RPM_TO_RAD_S, 500.0, 100000.0, "motor speed limit [RPM]"),
         ParamSpec("SERVO_LIM_DEG", math.degrees(af.servo_limit_rad), 5.0, 180.0, "servo range +- [deg]"),
         ParamSpec("NOISE_POS_M", 0.0, 0.0, 10.0, "position noise, 1 sigma [m]"),
@@ -72,7 +73,7 @@ def airframe_from_params(nominal: Airframe, p: dict[str, float]) -> Airframe:
     return dataclasses.replace(
         nominal, mass_kg=p["MASS_KG"], Ixx_kg_m2=p["IXX_KGM2"], Iyy_kg_m2=p["IYY_KGM2"],
         Izz_kg_m2=p["IZZ_KGM2"], Iyz_kg_m2=p["IYZ_KGM2"], k_f_N_s2=p["KF"], k_d_N_m_s2=p["KD"],
-        arm_length_m=p["ARM_LEN_M"], servo_delay_s=p["SERVO_DELAY_S"],
+        arm_length_m=p["ARM_LEN_M"], servo_delay_s=p["SERVO_DELAY_S"], servo_rate_rad_s=math.radians(p["SERVO_RATE_DPS"]),
         max_rotor_speed_rad_s=p["MOT_MAX_RPM"] * RPM_TO_RAD_S, servo_limit_rad=math.radians(p["SERVO_LIM_DEG"]))
 
 

@@ -16,7 +16,7 @@ physics step and held through it. Without a Wind there is no air at all: the pap
 
 Actuators, per rotor: motor speed omega in [0, max_rotor_speed] applied at once; servo angle alpha
 clamped to +-servo_limit and applied after a pure transport delay (servo_delay_s, rounded to whole
-physics steps). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
+physics steps), the servo then turning towards it at servo_rate_rad_s at most (0: at once). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
 until its thrust lifts more than its weight.
 
 State per drone (13): position_e [m] (0:3), velocity_b [m/s] (3:6), quaternion_b2e (6:10),
@@ -33,8 +33,8 @@ import numpy as np
 
 from triswarm.protocol.airframe import Airframe
 from triswarm.protocol.frames import euler_from_quaternion, quaternion_from_euler, rotation_from_quaternion  # noqa: F401 (also for callers)
-from triswarm.protocol.dynamics import GRAVITY, KF, MASS, MAX_OMEGA, SERVO_LIMIT, airframe_vector, drag, \
-    propulsive_force, rigid_body
+from triswarm.protocol.dynamics import GRAVITY, KF, MASS, MAX_OMEGA, SERVO_LIMIT, SERVO_RATE, airframe_vector, \
+    drag, propulsive_force, rigid_body
 from triswarm.protocol.wind import TURBULENCE_STATES, Dryden, Wind, gusts_at, turbulence_step
 
 POS, VEL_B, QUAT, RATE_B = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
@@ -83,10 +83,11 @@ def _wind_at(air, step, i, dt, wind_now, scratch):
 
 
 @numba.njit(cache=True)
-def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, params, dt, n_steps, rho_out,
-             applied, air, wind_now):
+def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_steps, servo, params, dt, n_steps,
+             rho_out, applied, air, wind_now):
     """Advance every drone n_steps physics steps of dt with the commands held. params (N,
-    ``dynamics.PARAM_DIM``) and delay_steps (N,) are per drone. ``applied`` (N, 6) holds the rotor speeds and servo angles
+    ``dynamics.PARAM_DIM``) and delay_steps (N,) are per drone; servo (N, 3) holds the angle each
+    servo is at (updated). ``applied`` (N, 6) holds the rotor speeds and servo angles
     rho_out was last computed from (the sines and cosines are reused while they hold). ``air`` is
     ``_Air.kernel_args`` and wind_now (N, 3) the wind each drone feels, both None in no air (numba
     compiles that case without any of the wind). Returns hist_pos."""
@@ -104,7 +105,7 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
             if air is not None:
                 _wind_at(air, step, i, dt, wind_now, scratch)
             P = params[i]
-            wmax, amax = P[MAX_OMEGA], P[SERVO_LIMIT]
+            wmax, amax, turn = P[MAX_OMEGA], P[SERVO_LIMIT], P[SERVO_RATE] * dt
             # Servo transport delay through a ring buffer; commands are clamped to the servo range.
             for j in range(3):
                 a = alpha_cmd[i, j]
@@ -121,6 +122,10 @@ def _advance(state, landed, omega_cmd, alpha_cmd, alpha_hist, hist_pos, delay_st
                 elif wj < 0.0:
                     wj = 0.0
                 a = alpha_hist[i, lag, j]
+                if turn > 0.0:  # the servo turns towards the delayed command at its rate
+                    now = servo[i, j]
+                    a = min(max(a, now - turn), now + turn)
+                servo[i, j] = a
                 if wj != applied[i, j] or a != applied[i, j + 3]:
                     w2 = wj * wj
                     rho_out[i, j] = w2 * math.sin(a)
@@ -317,6 +322,8 @@ class Plant:
         self.alpha_cmd = np.zeros((self.n, 3))
         self.alpha_hist = np.zeros((self.n, int(self.delay_steps.max()) + 1, 3))
         self.hist_pos = 0
+        self.servo_rad = np.zeros((self.n, 3))
+        """The angle each servo is at [rad] (behind its delayed command while it turns)."""
         self.rho = np.zeros((self.n, 6))
         """rho (29) actually applied during the last physics step (after limits and delay)."""
         self._applied = np.full((self.n, 6), np.nan)  # what self.rho was computed from
@@ -355,6 +362,7 @@ class Plant:
         servo = np.zeros((self.n, 3)) if servo_rad is None else np.broadcast_to(servo_rad, (self.n, 3))
         self.alpha_hist[:] = servo[:, None, :]
         self.alpha_cmd[:] = servo
+        self.servo_rad[:] = servo
         self.time_s = 0.0
         self.steps = 0
 
@@ -368,7 +376,8 @@ class Plant:
 
     def advance(self, n_steps: int) -> None:
         self.hist_pos = _advance(self.state, self.landed, self.omega_cmd, self.alpha_cmd, self.alpha_hist,
-                                 self.hist_pos, self.delay_steps, self.params, self.dt_s, int(n_steps), self.rho,
+                                 self.hist_pos, self.delay_steps, self.servo_rad, self.params, self.dt_s, int(n_steps),
+                                 self.rho,
                                  self._applied, self._air.kernel_args(self.steps, int(n_steps)),
                                  None if self._air.wind is None else self._air.wind_now)
         self.steps += int(n_steps)

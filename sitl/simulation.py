@@ -52,6 +52,8 @@ class SimConfig:
     """Plant servo delay; None keeps the plan airframe's. The controller keeps the plan's value."""
     max_rpm: float | None = None
     """Plant motor limit; None keeps the plan airframe's."""
+    servo_rate_deg_s: float | None = None
+    """Plant servo speed [deg/s] (0: at once); None keeps the plan airframe's."""
     controller_delay_s: float | None = None
     """Servo delay the controller compensates; None: the plan airframe's (0 switches it off)."""
     noise: SensorNoise | None = None
@@ -83,6 +85,8 @@ class SimConfig:
             raise ValueError(f"servo delay must be a non-negative number of seconds, got {self.servo_delay_s!r}")
         if self.max_rpm is not None and not (math.isfinite(self.max_rpm) and self.max_rpm > 0):
             raise ValueError(f"max rpm must be a positive number, got {self.max_rpm!r}")
+        if self.servo_rate_deg_s is not None and not (math.isfinite(self.servo_rate_deg_s) and self.servo_rate_deg_s >= 0):
+            raise ValueError(f"servo rate must be a non-negative number of degrees a second, got {self.servo_rate_deg_s!r}")
         if not (math.isfinite(self.mismatch_pct) and -50.0 < self.mismatch_pct < 100.0):
             raise ValueError(f"mismatch must be a percentage between -50 and 100, got {self.mismatch_pct!r}")
         if self.latency_s is not None and not (math.isfinite(self.latency_s) and 0 <= self.latency_s <= MAX_LATENCY_S):
@@ -133,6 +137,8 @@ def plant_airframe(plan: Plan, config: SimConfig) -> Airframe:
         changes["servo_delay_s"] = config.servo_delay_s
     if config.max_rpm is not None:
         changes["max_rotor_speed_rad_s"] = config.max_rpm * RPM_TO_RAD_S
+    if config.servo_rate_deg_s is not None:
+        changes["servo_rate_rad_s"] = math.radians(config.servo_rate_deg_s)
     return af.replace(**changes) if changes else af
 
 

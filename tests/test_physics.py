@@ -91,6 +91,36 @@ def test_servo_delay_is_a_transport_delay(airframe):
     assert np.allclose(seen[10:], [0.5, -0.3, 0.2])  # from step 10 = 0.01 s on: the new one
 
 
+def test_a_servo_of_finite_speed_turns_at_its_rate_after_the_delay(airframe):
+    """With servo_rate_rad_s, a servo turns towards its delayed command at that rate: from the old
+    angle a0 to the new a1 it follows a0 + rate (t - delay) sign(a1 - a0) and stops at a1; the
+    longer way round (-100 deg to +100 deg) goes through the middle of the range, never across its
+    ends. A command that changes while the servo turns turns it towards the new one."""
+    rate_rad_s, delay_s, dt_s = 10.0, 0.01, 1e-3
+    af = airframe.replace(servo_rate_rad_s=rate_rad_s, servo_delay_s=delay_s)
+    plant = ph.Plant(af, 1, dt_s=dt_s)
+    start = np.radians([0.0, -100.0, 30.0])
+    plant.reset([[0, 0, 100.0]], servo_rad=start)
+    plant.landed[:] = False
+    target = np.radians([60.0, 100.0, 30.0])
+    plant.command([[300.0, 300.0, 300.0]], [target])
+    seen = []
+    for _ in range(500):
+        plant.advance(1)
+        seen.append(np.arctan2(plant.rho[0, 0:3], plant.rho[0, 3:6]).copy())
+    t_s = dt_s * np.arange(1, 501)  # (the angle applied through step k ends at (k + 1) dt)
+    turned = np.clip(rate_rad_s * (t_s - delay_s), 0.0, None)[:, None]
+    expected = start + np.sign(target - start) * np.minimum(turned, np.abs(target - start))
+    # (arctan2 wraps: compare on the circle; the middle of the range is what the path crosses)
+    assert np.allclose(np.angle(np.exp(1j * (np.array(seen) - expected))), 0.0, atol=1e-9)
+    assert np.abs(np.array(seen)[:, 1]).max() <= np.radians(100.0) + 1e-9 and np.array(seen)[200, 1] > 0
+    plant.command([[300.0, 300.0, 300.0]], [start])  # back, from where each servo is
+    at = plant.servo_rad.copy()
+    plant.advance(int(delay_s / dt_s) + 20)
+    assert plant.servo_rad == pytest.approx(at + np.sign(start - at) * np.minimum(20 * dt_s * rate_rad_s,
+                                                                                 np.abs(start - at)))
+
+
 def test_motor_and_servo_limits_are_applied(airframe):
     plant = ph.Plant(airframe, 1, dt_s=1e-3, servo_delay_s=0.0)
     plant.reset([[0, 0, 100.0]])
