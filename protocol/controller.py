@@ -320,8 +320,8 @@ class FormationController:
                         self._half_G, r.L, r.M0, r.inertia, r.inertia_inv, r.G_inv, r.airframe.gravity_m_s2, self.drag_1_m,
                         MAX_PITCH_RAD, self.thrust_scale, self._adapt_k, self.kappa_limits[0], self.kappa_limits[1],
                         self.wind_estimate_e_m_s, self._wind_gain, WIND_ESTIMATE_FLOOR_M_S, r.airframe.servo_limit_rad,
-                        self._servo_step_rad, self.servo_command_rad, self._v_pipe, self._motor_pipe, self._v_applied, v_out, omega, alpha, omega_now,
-                        self._G, self._M0_inv)
+                        self._servo_step_rad, self.servo_command_rad, self._v_pipe, self._motor_pipe,
+                        self._v_applied, v_out, omega, alpha, omega_now, self._G, self._M0_inv)
         return Actuation(omega_now, alpha)
 
     def hold_tick(self, y: np.ndarray, rows=None, rate_b_rad_s: np.ndarray | None = None,

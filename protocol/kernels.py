@@ -446,8 +446,8 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     where its servo turns in one period (servo_step [rad] from its last command servo_cmd[i, j];
     servo_step 0: at once), leaves the three rotors to keep the angular accelerations asked, giving
     way in force (``allocate_within_range``; ``allocate_within_reach`` for servos of finite speed);
-    servo_cmd is updated to the angles commanded. The v committed for such a row is then the one the rotors deliver
-    (``input_shortfall_v``: G and M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
+    servo_cmd is updated to the angles commanded. The v committed for such a row is then the one the
+    rotors deliver (``input_shortfall_v``: G and M0_inv, M(0)^-1), so the observer and the predictor run on what the drone is really given and
     its disturbance estimate does not take up what the actuators could not deliver (no wind-up)."""
     nz = z_pred.shape[1]
     zm = np.empty(nz)

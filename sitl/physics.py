@@ -16,8 +16,9 @@ physics step and held through it. Without a Wind there is no air at all: the pap
 
 Actuators, per rotor: motor speed omega in [0, max_rotor_speed] applied at once; servo angle alpha
 clamped to +-servo_limit and applied after a pure transport delay (servo_delay_s, rounded to whole
-physics steps), the servo then turning towards it at servo_rate_rad_s at most (0: at once). Ground contact: z never goes below 0; a drone on the ground stays at rest, level,
-until its thrust lifts more than its weight.
+physics steps), the servo then turning towards it at servo_rate_rad_s at most (0: at once). Ground
+contact: z never goes below 0; a drone on the ground stays at rest, level, until its thrust lifts
+more than its weight.
 
 State per drone (13): position_e [m] (0:3), velocity_b [m/s] (3:6), quaternion_b2e (6:10),
 rate_b [rad/s] (10:13), in the paper's frames (earth z up, body z along the untilted thrust).
