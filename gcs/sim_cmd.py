@@ -127,6 +127,12 @@ def sim(
 
     for problem in problems:
         err_console.print(f"triswarm: warning: {plan.source}: {problem}; flying it anyway (--force)", soft_wrap=True)
+    told_deg_s = math.degrees(plan.airframe.servo_rate_rad_s)
+    if servo_rate_deg_s and not math.isclose(servo_rate_deg_s, told_deg_s, rel_tol=1e-9):
+        told = f"{told_deg_s:g} deg/s" if told_deg_s else "at once"
+        err_console.print(f"triswarm: note: the simulated servos turn at {servo_rate_deg_s:g} deg/s and the controllers "
+                          f"fly them as the plan's airframe says ({told}); [airframe] servo_rate_rad_s tells them "
+                          "(docs/wind.md#servos-of-finite-speed)", soft_wrap=True, markup=False)
     console.print(f"[bold]{plan.name}[/]: {plan.n_agents} drones, {duration:g} s, c = {design.c:.3g}, "
                   f"lambda_R = {design.lambda_R:.3g}, topologies {', '.join(design.topology_names)}")
     with Progress(TextColumn("simulating"), BarColumn(), TextColumn("{task.fields[t]:6.1f} / {task.total:g} s"),

@@ -192,6 +192,23 @@ def test_sim_refuses_an_uncertified_schedule_unless_forced(tmp_path):
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["drones"] == 30
 
 
+def test_sim_says_when_its_servos_are_slower_than_the_controllers_are_told(tmp_path):
+    """`sim --servo-rate-deg-s 600` of a plan whose airframe's servos turn at once: one note on
+    stderr naming both speeds and how to tell the controllers; the plan that tells them (the same
+    speed in [airframe]) flies without it."""
+    r = triswarm("sim", "--servo-rate-deg-s", "600", "--duration-s", "0.5", "--no-figures", "--out",
+                 str(tmp_path / "a"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.startswith("triswarm: note: the simulated servos turn at 600 deg/s") and "(at once)" in r.stderr
+    assert "[airframe] servo_rate_rad_s" in r.stderr
+    told = paper_plan_variant(tmp_path, [("[controller]\n", "[airframe]\nservo_rate_rad_s = 10.471975511965978\n\n"
+                                                           "[controller]\n")])
+    r = triswarm("sim", str(told), "--servo-rate-deg-s", "600", "--duration-s", "0.5", "--no-figures", "--out",
+                 str(tmp_path / "b"), cwd=tmp_path)
+    assert r.returncode == 0 and "note" not in r.stderr, r.stderr
+    assert json.loads((tmp_path / "b" / "summary.json").read_text())["run"]["servo_rate_deg_s"] == pytest.approx(600.0)
+
+
 def test_the_cli_reference_is_the_clis_own_help():
     """docs/cli.md is generated from the CLI (make docs): it must say what --help says today."""
     import subprocess
