@@ -13,8 +13,8 @@ from scipy.optimize import nnls
 from triswarm.gcs.scenarios import read_plan_spec
 from triswarm.protocol import kernels, metrics, model
 from triswarm.protocol.airframe import TABLE_1
-from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.kernels import TORQUE_PRIORITY
+from triswarm.protocol.plan import plan_from_dict
 from triswarm.protocol.wind import TURBULENCE_SIGMA_W_M_S, Gust, Wind
 from triswarm.sitl.simulation import SimConfig, simulate
 
@@ -58,6 +58,8 @@ def test_beyond_reach_the_forces_are_the_best_within_it(rng):
         step = np.radians(rng.uniform(0.5, 3.0, 3))
         lo, hi = np.maximum(now - step, -limit), np.minimum(now + step, limit)
         asked = now + rng.choice([-1.0, 1.0], 3) * rng.uniform(0.0, 1.5, 3)
+        j = rng.integers(3)
+        asked[j] = now[j] + 0.06  # (one at least out of reach: 3.4 deg)
         rho = model.actuator_map(rng.uniform(200, 600, 3), asked)
         out, angle, changed = within_reach(rho, lo, hi, G)
         assert changed
