@@ -17,7 +17,7 @@ its section "The accelerometer"'s:
 Every flight is seeded: the tables are deterministic. Run on one core per job:
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMBA_NUM_THREADS=1 \\
-        python tests/bench/bench_goal.py [--sizes 6,24,50,100,200] [--servo-sizes 6,24] [--seeds 3] [--jobs 1] \\
+        python tests/bench/bench_goal.py [--sizes 6,24,50,100,200] [--servo-sizes 6,24,50] [--seeds 3] [--jobs 1] \\
             [--tables goal,other,servos]
 """
 
@@ -140,7 +140,7 @@ SERVOS = ((0.0, True), (1200.0, True), (600.0, True), (300.0, True), (600.0, Fal
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="6,24,50,100,200", help="comma-separated swarm sizes")
-    ap.add_argument("--servo-sizes", default="6,24", help="comma-separated swarm sizes of the servos' table")
+    ap.add_argument("--servo-sizes", default="6,24,50", help="comma-separated swarm sizes of the servos' table")
     ap.add_argument("--seeds", type=int, default=3,
                     help="seeds 0 .. SEEDS-1 in the goal's air and at 4 m/s (the worst air: seeds 0 and 1)")
     ap.add_argument("--jobs", type=int, default=1, help="flights flown at once, one process each")
