@@ -267,7 +267,7 @@ def push(rows, v, omega, keep_motor, v_pipe, motor_pipe, v_applied, omega_now):
 @njit()
 def _nnls(A, b, x):
     """x >= 0 (written) minimising |A x - b|: Lawson and Hanson's active-set method, for the small
-    problems of ``allocate_within_reach`` (6 rows, 6 columns). Returns the squared residual."""
+    problems of ``allocate_within_reach`` (6 rows, 6 columns)."""
     m, n = A.shape
     x[:] = 0.0
     passive = np.zeros(n, np.bool_)
@@ -307,8 +307,6 @@ def _nnls(A, b, x):
                 break
         r = b - A @ x
         grad = A.T @ r
-    r = b - A @ x
-    return float(r @ r)
 
 
 @njit()
@@ -457,8 +455,8 @@ def actuate(rows, z_pred, z, v_in, Einv, use_dist, half_Phi, half_G, L, M0, I, I
     dv = np.empty(6)
     rho = np.empty(6)
     edge = np.zeros(3)
-    lo = np.full(3, -servo_limit)
-    hi = np.full(3, servo_limit)
+    lo = np.empty(3)  # (a servo's reach this period: servos of finite speed only)
+    hi = np.empty(3)
     for k in range(rows.shape[0]):
         i = rows[k]
         v_out[k, :] = v_in[k, :]
